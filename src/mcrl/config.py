@@ -1,0 +1,215 @@
+"""Typed run configuration and the presets named after the thesis' experiments.
+
+A run is fully described by one `Config`. Presets reproduce the thesis' hyperparameter tables
+(Appendix A and C); anything can be overridden with ``--set key=value`` on the command line or a
+dict in Python. `resolve_config` validates the result, so a bad value fails before anything runs.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import yaml
+
+from mcrl.errors import MCRLError
+
+
+@dataclass
+class Config:
+    # --- task ---
+    env_id: str = "FetchReach-v4"
+    env_kwargs: dict = field(default_factory=dict)
+    action_scale: float = 1.0  # policy actions in [-1, 1] are multiplied by this, then mapped to the Box
+    total_steps: int = 5_000
+    seed: int = 0
+    # --- SAC (thesis Appendix A) ---
+    learning_rate: float = 3e-4
+    buffer_size: int = 1_000_000
+    batch_size: int = 256
+    tau: float = 0.005
+    gamma: float = 0.99
+    hidden_sizes: tuple[int, ...] = (256, 256, 256)
+    learning_starts: int = 100  # random-action warm-up steps (stable-baselines3's default)
+    ent_coef_init: float = 1.0  # 'auto' entropy coefficient, initial value (stable-baselines3's default)
+    target_entropy: float | None = None  # None = -|A|
+    # --- HER ---
+    her: bool | None = None  # None = on for goal-conditioned Dict environments
+    her_strategy: str = "future"  # future | final | episode
+    her_k: int = 4  # sampled goals per real transition: relabel fraction k / (k + 1)
+    # --- morphological computation ---
+    mc_alpha: float = 0.0  # weight of the MC reward: (1 - a) r_ext + a r_mc
+    mc_models: bool | None = None  # None = train the MC models iff mc_alpha > 0
+    mc_lr: float = 3e-4
+    mc_hidden_sizes: tuple[int, ...] = (256, 256, 256, 256, 256)
+    mc_state: str = "observation"  # observation | full (observation + achieved_goal + desired_goal)
+    mc_reduction: str = "transition"  # transition (thesis text) | batch (thesis code: one batch-mean KL)
+    mc_history: int = 400_000  # raw KL values kept by the normaliser
+    min_percentile: float = 0.0
+    max_percentile: float = 94.0
+    mc_reward_low: float = -1.0
+    mc_reward_high: float = 0.0
+    # --- evaluation, logging, checkpoints ---
+    eval_every: int = 2_500
+    eval_episodes: int = 10
+    log_every: int = 500
+    checkpoint_every: int = 10_000  # env steps; a checkpoint is written at the next episode end
+    keep_checkpoints: int = 2
+    save_buffer: bool = True
+    video_every: int = 0  # record an evaluation video every N steps (0 = never)
+    out_dir: str = "runs"
+    preset: str | None = None
+
+    # ---- derived ----
+    @property
+    def use_mc_models(self) -> bool:
+        return self.mc_alpha > 0 if self.mc_models is None else bool(self.mc_models)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Config":
+        unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise MCRLError(f"unknown config key(s) {sorted(unknown)}: run `mcrl presets --keys` to list valid keys")
+        cfg = cls(**{k: _coerce(k, v) for k, v in d.items()})
+        validate(cfg)
+        return cfg
+
+
+_FETCHPUSH = dict(env_id="FetchPush-v4", total_steps=150_000, learning_rate=3e-4, buffer_size=1_000_000,
+                  batch_size=256, tau=0.005, gamma=0.99, her=True, mc_lr=3e-4, min_percentile=0.0,
+                  max_percentile=94.0, mc_reward_low=-1.0, mc_reward_high=0.0, eval_every=5_000,
+                  log_every=1_000)
+_ANTMAZE = dict(env_id="AntMaze_UMazeDense-v5", total_steps=400_000, learning_rate=4e-4, buffer_size=1_000_000,
+                batch_size=2048, tau=0.05, gamma=0.95, her=True, mc_lr=4e-4, min_percentile=0.0,
+                max_percentile=98.0, mc_reward_low=0.0, mc_reward_high=1.0, eval_every=10_000,
+                eval_episodes=10, log_every=2_000)
+_FETCHREACH = dict(env_id="FetchReach-v4", total_steps=5_000, her=True, mc_lr=3e-4, max_percentile=94.0,
+                   mc_reward_low=-1.0, mc_reward_high=0.0, eval_every=1_000, log_every=250)
+
+# name -> (description, overrides of the Config defaults)
+PRESETS: dict[str, tuple[str, dict[str, Any]]] = {
+    "fetchpush-sac": ("Thesis Table A.1: SAC+HER baseline on FetchPush, 150k steps", {**_FETCHPUSH, "mc_alpha": 0.0}),
+    **{
+        f"fetchpush-sacmc-{a}": (f"Thesis Table A.2: SAC-MC alpha={a} on FetchPush, 150k steps",
+                                 {**_FETCHPUSH, "mc_alpha": float(a)})
+        for a in ("0.2", "0.4", "0.6", "0.8", "1.0")
+    },
+    "antmaze-sac": ("Thesis Table A.3: SAC+HER baseline on AntMaze (dense U-maze), 400k steps",
+                    {**_ANTMAZE, "mc_alpha": 0.0}),
+    "antmaze-sacmc": ("Thesis Table A.4: SAC-MC alpha=0.2, max percentile 98 on AntMaze, 400k steps",
+                      {**_ANTMAZE, "mc_alpha": 0.2}),
+    "antmaze-sacmc-p94": ("Thesis Table C.1: SAC-MC alpha=0.2, max percentile 94 on AntMaze, 400k steps",
+                          {**_ANTMAZE, "mc_alpha": 0.2, "max_percentile": 94.0}),
+    "fetchreach-sac": ("Quick demo: SAC+HER on FetchReach, 5k steps (thesis sizes)", {**_FETCHREACH, "mc_alpha": 0.0}),
+    "fetchreach-sacmc": ("Quick demo: SAC-MC alpha=0.2 on FetchReach, 5k steps (thesis sizes)",
+                         {**_FETCHREACH, "mc_alpha": 0.2}),
+}
+
+
+def resolve_config(preset: str | None = None, overrides: dict[str, Any] | None = None) -> Config:
+    """The preset's values, then `overrides` on top; validated."""
+    d: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise MCRLError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)} (`mcrl presets`)")
+        d.update(PRESETS[preset][1])
+        d["preset"] = preset
+    d.update(overrides or {})
+    return Config.from_dict(d)
+
+
+def parse_set(items: list[str]) -> dict[str, Any]:
+    """Parse ``key=value`` strings (values in YAML syntax: 0.2, true, [256, 256], null)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise MCRLError(f"bad --set {item!r}: write key=value, e.g. --set mc_alpha=0.2")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError:
+            out[k.strip()] = v
+    return out
+
+
+_FIELDS = {f.name: f for f in dataclasses.fields(Config)}
+
+
+def _coerce(key: str, value: Any) -> Any:
+    """Convert a parsed value to the field's type, with a one-line error on mismatch."""
+    typ = str(_FIELDS[key].type)
+    if value is None:
+        if "None" in typ:
+            return None
+        raise MCRLError(f"config key {key!r} cannot be null: give a value of type {typ}")
+    try:
+        if typ.startswith("tuple"):
+            if isinstance(value, (int, float)):
+                value = [value]
+            return tuple(int(v) for v in value)
+        if typ.startswith("bool"):
+            if isinstance(value, str):
+                if value.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(value)
+                return value.lower() in ("true", "1")
+            return bool(value)
+        if typ.startswith("int"):
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(value)
+            return int(value)
+        if typ.startswith("float"):
+            return float(value)
+        if typ.startswith("dict"):
+            if not isinstance(value, dict):
+                raise ValueError(value)
+            return dict(value)
+        if typ.startswith("str"):
+            return str(value)
+    except (TypeError, ValueError):
+        raise MCRLError(f"config key {key!r} got {value!r}: expected {typ}") from None
+    return value
+
+
+def validate(cfg: Config) -> None:
+    """Reject values that cannot work, each with a message naming the fix."""
+    def bad(msg: str) -> None:
+        raise MCRLError(msg)
+
+    if not 0.0 <= cfg.mc_alpha <= 1.0:
+        bad(f"mc_alpha={cfg.mc_alpha} is outside [0, 1]: pick a weight between 0 (pure SAC) and 1 (MC reward only)")
+    for name in ("min_percentile", "max_percentile"):
+        v = getattr(cfg, name)
+        if not 0.0 <= v <= 100.0:
+            bad(f"{name}={v} is outside [0, 100]: percentiles are between 0 and 100")
+    if cfg.min_percentile >= cfg.max_percentile:
+        bad(f"min_percentile={cfg.min_percentile} >= max_percentile={cfg.max_percentile}: "
+            "the lower bound's percentile must be below the upper one (thesis: 0 and 94)")
+    if cfg.mc_reward_low >= cfg.mc_reward_high:
+        bad(f"mc_reward_low={cfg.mc_reward_low} >= mc_reward_high={cfg.mc_reward_high}: give a range low < high")
+    if cfg.her_strategy not in ("future", "final", "episode"):
+        bad(f"her_strategy={cfg.her_strategy!r}: choose future, final or episode")
+    if cfg.mc_state not in ("observation", "full"):
+        bad(f"mc_state={cfg.mc_state!r}: choose observation or full")
+    if cfg.mc_reduction not in ("transition", "batch"):
+        bad(f"mc_reduction={cfg.mc_reduction!r}: choose transition or batch")
+    for name in ("total_steps", "batch_size", "buffer_size", "eval_episodes", "log_every", "mc_history",
+                 "checkpoint_every", "keep_checkpoints"):
+        if getattr(cfg, name) < 1:
+            bad(f"{name}={getattr(cfg, name)} must be at least 1")
+    for name in ("learning_starts", "eval_every", "her_k", "video_every"):
+        if getattr(cfg, name) < 0:
+            bad(f"{name}={getattr(cfg, name)} must be non-negative")
+    if not cfg.hidden_sizes or not cfg.mc_hidden_sizes or min(cfg.hidden_sizes + cfg.mc_hidden_sizes) < 1:
+        bad("hidden_sizes and mc_hidden_sizes need at least one layer of positive width, e.g. [256, 256, 256]")
+    for name in ("learning_rate", "mc_lr", "ent_coef_init", "action_scale"):
+        if not getattr(cfg, name) > 0:
+            bad(f"{name}={getattr(cfg, name)} must be positive")
+    if not (0 < cfg.tau <= 1 and 0 <= cfg.gamma < 1):
+        bad(f"tau={cfg.tau}, gamma={cfg.gamma}: need 0 < tau <= 1 and 0 <= gamma < 1")

@@ -1,0 +1,107 @@
+"""Environment construction and the observation / action / success conventions mcrl relies on."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+
+from mcrl.config import Config
+from mcrl.errors import MCRLError
+
+GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
+_registered = False
+
+
+def _register() -> None:
+    global _registered
+    if not _registered:
+        os.environ.setdefault("MUJOCO_GL", "egl")  # only used if rendering; headless-safe default
+        import contextlib
+        import io
+
+        with contextlib.redirect_stdout(io.StringIO()):  # it prints a notice about Adroit envs on import
+            import gymnasium_robotics
+        gym.register_envs(gymnasium_robotics)
+        _registered = True
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """What the learner needs to know about an environment."""
+
+    goal_env: bool
+    obs_dim: int  # flat policy input
+    act_dim: int
+    observation_dim: int  # the `observation` part (goal envs) or the whole Box
+    goal_dim: int  # 0 for Box envs
+    mc_dim: int  # the MC state: first mc_dim entries of the flat obs
+    max_episode_steps: int | None
+
+
+def make_env(cfg: Config, render_mode: str | None = None) -> gym.Env:
+    _register()
+    try:
+        env = gym.make(cfg.env_id, render_mode=render_mode, **cfg.env_kwargs)
+    except gym.error.Error as e:  # NameNotFound, VersionNotFound, ...
+        raise MCRLError(f"unknown environment {cfg.env_id!r} ({e}): give a registered gymnasium id, "
+                        "e.g. FetchPush-v4 or AntMaze_UMazeDense-v5") from None
+    except TypeError as e:
+        raise MCRLError(f"environment {cfg.env_id!r} rejected env_kwargs {cfg.env_kwargs}: {e}") from None
+    return env
+
+
+def inspect(env: gym.Env, cfg: Config) -> EnvSpec:
+    """Check the spaces and return their sizes; raises MCRLError naming the fix."""
+    if not isinstance(env.action_space, gym.spaces.Box):
+        raise MCRLError(f"{cfg.env_id} has a {type(env.action_space).__name__} action space: SAC needs a "
+                        "continuous Box action space")
+    act_dim = int(np.prod(env.action_space.shape))
+    space = env.observation_space
+    goal_env = isinstance(space, gym.spaces.Dict) and all(k in space.spaces for k in GOAL_KEYS)
+    use_her = goal_env if cfg.her is None else cfg.her
+    if use_her and not goal_env:
+        raise MCRLError(f"her=true but {cfg.env_id} has no observation/achieved_goal/desired_goal Dict "
+                        "observation: set --set her=false")
+    if goal_env:
+        od = int(np.prod(space["observation"].shape))
+        gd = int(np.prod(space["desired_goal"].shape))
+        obs_dim = od + 2 * gd
+    elif isinstance(space, gym.spaces.Box):
+        od, gd, obs_dim = int(np.prod(space.shape)), 0, int(np.prod(space.shape))
+    else:
+        raise MCRLError(f"{cfg.env_id} has a {type(space).__name__} observation space: mcrl needs a Box or a "
+                        "goal Dict (observation, achieved_goal, desired_goal)")
+    mc_dim = obs_dim if cfg.mc_state == "full" else od
+    steps = env.spec.max_episode_steps if env.spec is not None else None
+    return EnvSpec(goal_env, obs_dim, act_dim, od, gd, mc_dim, steps)
+
+
+def flatten_obs(obs) -> np.ndarray:
+    """Policy input: observation | achieved_goal | desired_goal for goal envs, the Box itself otherwise."""
+    if isinstance(obs, dict):
+        return np.concatenate([np.asarray(obs[k], np.float32).reshape(-1) for k in GOAL_KEYS])
+    return np.asarray(obs, np.float32).reshape(-1)
+
+
+def to_env_action(action: np.ndarray, env: gym.Env, action_scale: float) -> np.ndarray:
+    """Policy actions live in [-1, 1]; scale them, then map onto the Box's bounds."""
+    low, high = env.action_space.low, env.action_space.high
+    a = np.clip(np.asarray(action, np.float64) * action_scale, -1.0, 1.0)
+    if np.all(np.isfinite(low)) and np.all(np.isfinite(high)):
+        a = low + (a + 1.0) * 0.5 * (high - low)
+    return a.astype(env.action_space.dtype).reshape(env.action_space.shape)
+
+
+def success_of(info: dict) -> float | None:
+    """Success flag the environment reports (`is_success` for Fetch, `success` for AntMaze), if any."""
+    for k in ("is_success", "success"):
+        if k in info:
+            return float(info[k])
+    return None
+
+
+def episode_seed(seed: int, stream: int, episode: int) -> int:
+    """Seed of every reset: runs are reproducible and resumable without saving the env's RNG."""
+    return int(np.random.SeedSequence([seed, stream, episode]).generate_state(1)[0])

@@ -1,0 +1,187 @@
+"""Learning-curve figures: one run (``mcrl plot``) and the shared drawing code the report uses.
+
+Figures are built with ``matplotlib.figure.Figure`` directly (no pyplot), which renders through
+Agg, needs no display and leaves matplotlib's global backend alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+
+from mcrl.errors import MCRLError
+from mcrl.stats import DEFAULT_N_BOOT, mean_ci_band
+
+COLORS = [f"C{i}" for i in range(10)]
+
+
+def read_csv(path: str | Path) -> dict[str, np.ndarray]:
+    """Columns of a run's CSV as float arrays; empty or non-numeric cells are NaN.
+
+    A missing file, or one with only a header, gives empty columns (or ``{}``), so callers can
+    treat "not written yet" and "no rows yet" alike.
+    """
+    p = Path(path)
+    if not p.is_file():
+        return {}
+    with p.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        if header is None:
+            return {}
+        rows = [r for r in reader if r]
+
+    def num(cell: str) -> float:
+        try:
+            return float(cell)
+        except ValueError:
+            return math.nan
+
+    cols: dict[str, np.ndarray] = {}
+    for j, name in enumerate(header):
+        cols[name.strip()] = np.array([num(r[j]) if j < len(r) else math.nan for r in rows], dtype=float)
+    return cols
+
+
+def has_data(cols: Mapping[str, np.ndarray], name: str) -> bool:
+    """Whether column ``name`` exists and holds at least one finite value."""
+    return name in cols and bool(np.isfinite(cols[name]).any())
+
+
+def plot_curves_with_band(
+    ax: Axes,
+    steps: Any,
+    curves_by_config: Mapping[str, Any],
+    *,
+    title: str = "",
+    ylabel: str = "",
+    xlabel: str = "env steps",
+    colors: Mapping[str, str] | None = None,
+    logy: bool = False,
+    n_boot: int = DEFAULT_N_BOOT,
+    seed: int = 0,
+    linestyle: str = "-",
+) -> None:
+    """Draw, per configuration, the mean curve over seeds and its 95% bootstrap band.
+
+    ``curves_by_config`` maps a label to curves (n_seeds, n_points) (a 1-D curve is one seed)
+    sampled at ``steps``; NaN marks points a seed lacks. With one seed the band is the curve
+    itself, which is how a single run is drawn by :func:`plot_run`.
+    """
+    x = np.asarray(steps, dtype=float)
+    for i, (label, curves) in enumerate(curves_by_config.items()):
+        c = np.atleast_2d(np.asarray(curves, dtype=float))
+        mean, lo, hi = mean_ci_band(c, n_boot=n_boot, rng=seed)
+        color = (colors or {}).get(label, COLORS[i % len(COLORS)])
+        n = c.shape[0]
+        ax.plot(x, mean, color=color, linestyle=linestyle, lw=1.5,
+                label=label if n == 1 else f"{label} (n={n})")
+        if n > 1:
+            ax.fill_between(x, lo, hi, color=color, alpha=0.2, lw=0)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.3)
+    if curves_by_config:
+        ax.legend(fontsize=7, loc="best")
+
+
+def panel_grid(n_panels: int, ncols: int = 2, panel_size: tuple[float, float] = (5.0, 3.2)) -> tuple[Figure, list[Axes]]:
+    """A figure with ``n_panels`` axes in a grid (unused cells removed)."""
+    ncols = max(1, min(ncols, n_panels))
+    nrows = max(1, math.ceil(n_panels / ncols))
+    fig = Figure(figsize=(panel_size[0] * ncols, panel_size[1] * nrows), layout="constrained")
+    axes = [fig.add_subplot(nrows, ncols, i + 1) for i in range(n_panels)]
+    return fig, axes
+
+
+# (title, ylabel, [(column, label)], source, log y) for each panel a run can have
+_RUN_PANELS: list[tuple[str, str, list[tuple[str, str]], str, bool]] = [
+    ("success rate", "success rate", [("success_rate", "eval"), ("train_success_rate", "train")], "both", False),
+    ("mean episode return", "return", [("mean_return", "eval"), ("train_return", "train")], "both", False),
+    ("actor loss", "loss", [("actor_loss", "actor")], "metrics", False),
+    ("critic loss", "loss", [("critic_loss", "critic")], "metrics", False),
+    ("entropy coefficient", "alpha (entropy)", [("ent_coef", "ent_coef")], "metrics", True),
+    ("MC model losses (NLL)", "loss", [("transition_model_loss", "p(s'|s,a)"),
+                                       ("action_model_loss", "p(s'|a)")], "metrics", False),
+    ("mean MC reward (replay batches)", "reward", [("mean_mc_reward", "MC reward")], "metrics", False),
+    ("raw KL (MC)", "nats", [("mean_raw_kl", "raw KL")], "metrics", False),
+]
+
+
+def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
+    """Plot the learning curves of one run into a multi-panel PNG; returns its path.
+
+    Panels: eval success rate and eval mean return (from eval.csv; the training-episode values
+    from metrics.csv dashed beside them), actor and critic loss, entropy coefficient, MC model
+    losses, mean MC reward and raw KL; a panel is left out when its columns are empty (e.g.
+    the MC panels of a plain SAC run). Default output: ``RUN_DIR/curves.png``.
+    """
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise MCRLError(f"run directory {run} does not exist: pass a directory written by `mcrl train`")
+    ev, mt = read_csv(run / "eval.csv"), read_csv(run / "metrics.csv")
+    if not (has_data(ev, "step") or has_data(mt, "step")):
+        raise MCRLError(f"{run} has no eval.csv or metrics.csv rows yet: wait for the run's first log "
+                        "interval, or pass a run directory written by `mcrl train`")
+
+    panels = []
+    for title, ylabel, cols, source, logy in _RUN_PANELS:
+        series = []  # (steps, values, label, linestyle)
+        for col, label in cols:
+            # eval.csv names the eval columns plainly; metrics.csv prefixes them (eval_*).
+            if col in ("success_rate", "mean_return") and has_data(ev, col):
+                series.append((ev["step"], ev[col], label, "-"))
+            elif has_data(mt, col):
+                series.append((mt["step"], mt[col], label, "--" if source == "both" else "-"))
+        if series:
+            panels.append((title, ylabel, series, logy))
+
+    fig, axes = panel_grid(len(panels))
+    cfg = _read_json(run / "config.json")
+    fig.suptitle(f"{run.name}  ({cfg.get('preset', '?')}, mc_alpha={cfg.get('mc_alpha', '?')}, "
+                 f"seed={cfg.get('seed', '?')}){'' if (run / 'done').exists() else '  [unfinished]'}",
+                 fontsize=11)
+    for ax, (title, ylabel, series, logy) in zip(axes, panels):
+        for k, (steps, values, label, ls) in enumerate(series):
+            plot_curves_with_band(ax, steps, {label: values}, title=title, ylabel=ylabel,
+                                  colors={label: COLORS[k]}, linestyle=ls,
+                                  logy=logy and bool(np.nanmin(values) > 0))
+    out = Path(out_png) if out_png is not None else run / "curves.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    return out
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    """A JSON object from ``path``, or {} when it is missing or unreadable (plots must not fail on it)."""
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return obj if isinstance(obj, dict) else {}
+
+
+def figure_to_png(fig: Figure, path: str | Path | None = None, dpi: int = 100) -> bytes:
+    """Render ``fig`` to PNG bytes (and write them to ``path`` when given)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    data = buf.getvalue()
+    if path is not None:
+        Path(path).write_bytes(data)
+    return data
+
+
+__all__: Sequence[str] = ["plot_run", "plot_curves_with_band", "panel_grid", "read_csv", "has_data",
+                          "figure_to_png", "COLORS"]
