@@ -21,7 +21,8 @@ def _register() -> None:
         import contextlib
         import io
 
-        with contextlib.redirect_stdout(io.StringIO()):  # it prints a notice about Adroit envs on import
+        # gymnasium_robotics prints a notice about Adroit environments on import
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             import gymnasium_robotics
         gym.register_envs(gymnasium_robotics)
         _registered = True

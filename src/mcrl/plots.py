@@ -10,7 +10,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -183,5 +183,5 @@ def figure_to_png(fig: Figure, path: str | Path | None = None, dpi: int = 100) -
     return data
 
 
-__all__: Sequence[str] = ["plot_run", "plot_curves_with_band", "panel_grid", "read_csv", "has_data",
+__all__ = ["plot_run", "plot_curves_with_band", "panel_grid", "read_csv", "has_data",
                           "figure_to_png", "COLORS"]

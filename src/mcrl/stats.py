@@ -21,7 +21,6 @@ from typing import Any
 
 import numpy as np
 import scipy.stats
-from rliable import metrics as rly_metrics
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +134,13 @@ def align_curves(
 # --------------------------------------------------------------------------- stratified bootstrap
 
 
+def _rly_metrics() -> Any:
+    """``rliable.metrics``, imported on first use so plotting works without the sweep extra."""
+    from rliable import metrics  # noqa: PLC0415
+
+    return metrics
+
+
 @functools.cache
 def _rliable_library() -> Any | None:
     """``rliable.library`` if it imports here, else None (see the module docstring)."""
@@ -204,6 +210,7 @@ def stratified_iqm_ci(
     name -> (IQM, low, high). Runs are resampled within each task (rliable's StratifiedBootstrap).
     """
     scores = {k: _as_runs_by_tasks(v) for k, v in score_dict.items()}
+    rly_metrics = _rly_metrics()
     lib = _rliable_library()
     if lib is not None:
         with _seeded_global_numpy(seed):
@@ -245,6 +252,7 @@ def probability_of_improvement(
     a, b = _as_runs_by_tasks(x), _as_runs_by_tasks(y)
     if a.shape[1] != b.shape[1]:
         raise ValueError(f"x and y need the same number of tasks, got {a.shape[1]} and {b.shape[1]}")
+    rly_metrics = _rly_metrics()
     point = float(rly_metrics.probability_of_improvement(a, b))
     lib = _rliable_library()
     if lib is not None:

@@ -79,6 +79,7 @@ print("MCRL_GL_OK")
 """
 
 _configured: str | None = None  # the backend configure_headless_gl() settled on
+_none_works = False  # probed every candidate and none worked
 _probe_failures: dict[str, str] = {}
 
 
@@ -87,7 +88,10 @@ def _probe_backend(backend: str, timeout: float = 60.0) -> str | None:
 
     A subprocess, because a failed attempt pins PyOpenGL's platform in this process.
     """
-    env = dict(os.environ, MUJOCO_GL=backend, PYOPENGL_PLATFORM=backend)
+    env = dict(os.environ, MUJOCO_GL=backend)
+    env.pop("PYOPENGL_PLATFORM", None)
+    if backend in APT_PACKAGES:  # PyOpenGL's platform must match egl/osmesa
+        env["PYOPENGL_PLATFORM"] = backend
     try:
         proc = subprocess.run(
             [sys.executable, "-c", _PROBE_SCRIPT.format(backend=backend)],
@@ -128,7 +132,7 @@ def configure_headless_gl(*, candidates: Sequence[str] = _HEADLESS_ORDER) -> str
     Call it before the first ``env.render()``; before ``import mujoco`` if you also use
     ``mujoco.Renderer`` (mujoco reads ``MUJOCO_GL`` at import). Idempotent and cached.
     """
-    global _configured
+    global _configured, _none_works
     current = os.environ.get("MUJOCO_GL", "").strip().lower()
     if current:
         if current not in _VALID_MUJOCO_GL:
@@ -145,6 +149,8 @@ def configure_headless_gl(*, candidates: Sequence[str] = _HEADLESS_ORDER) -> str
     if _configured is not None:  # we chose before and someone unset it: restore
         os.environ["MUJOCO_GL"] = _configured
         return _configured
+    if _none_works:
+        return None
     pinned = os.environ.get("PYOPENGL_PLATFORM", "").strip().lower()
     order = [b for b in candidates if not pinned or b == pinned]
     for backend in order:
@@ -155,6 +161,7 @@ def configure_headless_gl(*, candidates: Sequence[str] = _HEADLESS_ORDER) -> str
             _configured = backend
             return backend
         _probe_failures[backend] = reason
+    _none_works = True
     return None
 
 
@@ -422,9 +429,6 @@ class Timeline:
 
     # -- static part ------------------------------------------------------------------------
     def _draw_static(self, top, row_height, success_height, left, value_width, dpi):
-        import matplotlib
-
-        matplotlib.use("Agg", force=False)
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 

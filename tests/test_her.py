@@ -1,0 +1,86 @@
+"""HER relabelling: rewards from the environment's compute_reward, goals from the same episode's future,
+and relabelled transitions carry the MC reward."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mcrl import normaliser
+from mcrl.config import resolve_config
+from mcrl.envs import episode_seed, flatten_obs, inspect, make_env, to_env_action
+from mcrl.mc import transition_kl
+from mcrl.replay import ReplayBuffer
+from mcrl.sac import Agent, Batch
+
+
+def _filled_buffer(cfg, episodes=6, strategy="future"):
+    env = make_env(cfg)
+    spec = inspect(env, cfg)
+    buf = ReplayBuffer(10_000, spec.obs_dim, spec.act_dim, her=True, observation_dim=spec.observation_dim,
+                       goal_dim=spec.goal_dim, strategy=strategy, k=4, compute_reward=env.unwrapped.compute_reward)
+    rng = np.random.default_rng(0)
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=episode_seed(0, 0, ep))
+        done = False
+        while not done:
+            a = rng.uniform(-1, 1, spec.act_dim).astype(np.float32)
+            nxt, r, term, trunc, _ = env.step(to_env_action(a, env, 1.0))
+            buf.add(flatten_obs(obs), a, r, flatten_obs(nxt), term, term or trunc)
+            obs, done = nxt, term or trunc
+    return env, spec, buf
+
+
+def test_relabelled_rewards_equal_compute_reward_and_goals_come_from_the_future():
+    cfg = resolve_config("fetchreach-sac")
+    env, spec, buf = _filled_buffer(cfg)
+    od, gd = spec.observation_dim, spec.goal_dim
+    b = buf.sample(256, np.random.default_rng(1))
+    rel = b["relabelled"]
+    assert rel.sum() == round(256 * 4 / 5)
+    ag_next = b["next_obs"][:, od:od + gd]
+    goal = b["obs"][:, od + gd:]
+    np.testing.assert_array_equal(goal, b["next_obs"][:, od + gd:])
+    expected = np.array([env.unwrapped.compute_reward(ag_next[i], goal[i], {}) for i in range(256)])
+    np.testing.assert_array_equal(b["reward"], expected.astype(np.float32))
+    # some relabelled goals are reached (reward 0), unlike random real transitions of FetchReach
+    assert (b["reward"][rel] == 0).mean() > 0.15
+    # each relabelled goal is the next achieved goal of this or a later step of the same episode
+    T = spec.max_episode_steps
+    for i in np.flatnonzero(rel)[:60]:
+        slot = np.flatnonzero((buf.action[: len(buf)] == b["action"][i]).all(1))[0]  # random actions are unique
+        ep_start = slot - slot % T
+        future_ag = buf.next_obs[slot: ep_start + T, od:od + gd]
+        assert (np.abs(future_ag - goal[i]).max(1) == 0).any()
+
+
+def test_final_strategy_uses_the_last_achieved_goal():
+    cfg = resolve_config("fetchreach-sac", {"her_strategy": "final"})
+    env, spec, buf = _filled_buffer(cfg, episodes=3, strategy="final")
+    od, gd = spec.observation_dim, spec.goal_dim
+    finals = buf.next_obs[np.arange(3) * 50 + 49, od:od + gd]
+    b = buf.sample(128, np.random.default_rng(2))
+    goals = b["obs"][b["relabelled"], od + gd:]
+    assert all((np.abs(finals - g).max(1) == 0).any() for g in goals)
+
+
+def test_relabelled_transitions_carry_the_mc_reward():
+    # with mc_state=full the MC models see the (relabelled) goal, so relabelling changes their input
+    cfg = resolve_config("fetchreach-sacmc", {"mc_state": "full", "hidden_sizes": [32], "mc_hidden_sizes": [32],
+                                              "mc_history": 1024})
+    env, spec, buf = _filled_buffer(cfg)
+    agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
+    state = agent.init(0)
+    b = buf.sample(256, np.random.default_rng(3))
+    batch = Batch(*(jnp.asarray(b[k]) for k in ("obs", "action", "reward", "next_obs", "terminated")))
+    r_mc, kl, norm, bounds, *_ = jax.jit(agent.mc_reward)(state, batch)
+    out = agent.mc_models.forward(state.mc, batch.obs, batch.action)  # mc_dim == obs_dim here
+    direct_kl = np.asarray(transition_kl(out))
+    np.testing.assert_allclose(np.asarray(kl), direct_kl, rtol=1e-5)
+    lo, hi = normaliser.bounds(normaliser.push(state.norm, jnp.asarray(direct_kl)), 0.0, 94.0)
+    expected = np.asarray(normaliser.scale(jnp.asarray(direct_kl), lo, hi, -1.0, 0.0))
+    rel = b["relabelled"]
+    np.testing.assert_allclose(np.asarray(r_mc)[rel], expected[rel], rtol=1e-5, atol=1e-6)
+    assert np.ptp(np.asarray(r_mc)[rel]) > 0  # a real per-transition signal, not a constant
+    # the goal matters: un-relabelled copies of the same transitions give different KL
+    orig = batch._replace(obs=batch.obs.at[:, -3:].set(batch.obs[0, -3:] + 0.5))
+    kl_orig = np.asarray(jax.jit(agent.mc_reward)(state, orig)[1])
+    assert not np.allclose(kl_orig[rel], direct_kl[rel])

@@ -1,0 +1,56 @@
+"""SAC(-MC) equivalences: mc_alpha = 0 is exactly SAC, and the MC reward really changes learning."""
+import numpy as np
+
+from mcrl import checkpoint
+from mcrl.config import resolve_config
+from mcrl.trainer import load_policy, train
+
+
+def _run(tmp_path, name, small, **over):
+    cfg = resolve_config("fetchreach-sac", {**small, "total_steps": 300, "eval_every": 150, "log_every": 100,
+                                            "checkpoint_every": 10_000, **over})
+    return train(cfg, tmp_path / name, progress=False)
+
+
+def _params(run_dir):
+    _, _, state = load_policy(run_dir)
+    return state
+
+
+def _same(a, b):
+    import jax
+
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_alpha_zero_with_mc_models_is_bit_identical_to_sac(tmp_path, small):
+    sac = _run(tmp_path, "sac", small)
+    mc0 = _run(tmp_path, "mc0", small, mc_alpha=0.0, mc_models=True)
+    mc2 = _run(tmp_path, "mc2", small, mc_alpha=0.2)
+    s_sac, s_mc0, s_mc2 = _params(sac), _params(mc0), _params(mc2)
+    assert s_mc0.mc is not None and s_sac.mc is None  # the MC models really trained alongside
+    assert _same(s_sac.actor, s_mc0.actor) and _same(s_sac.critic, s_mc0.critic)
+    assert np.array_equal(s_sac.log_ent_coef, s_mc0.log_ent_coef)
+    assert (sac / "eval.csv").read_text() == (mc0 / "eval.csv").read_text()
+    # control: a non-zero weight changes the critic (the test can fail)
+    assert not _same(s_sac.critic, s_mc2.critic)
+
+
+def test_same_seed_same_run_and_different_seed_differs(tmp_path, small):
+    a, b = _run(tmp_path, "a", small, mc_alpha=0.2), _run(tmp_path, "b", small, mc_alpha=0.2)
+    c = _run(tmp_path, "c", small, mc_alpha=0.2, seed=1)
+    assert _same(_params(a), _params(b))
+    assert not _same(_params(a).actor, _params(c).actor)
+
+
+def test_checkpoint_holds_everything_and_no_pickle(tmp_path, small):
+    run = _run(tmp_path, "ck", small, mc_alpha=0.2)
+    ck = checkpoint.find(run)
+    with np.load(ck / "state.npz", allow_pickle=False) as f:
+        keys = set(f.files)
+    for part in (".actor", ".critic", ".critic_target", ".actor_opt", ".mc", ".mc_opt", ".norm.ring", ".key",
+                 ".log_ent_coef"):
+        assert any(k.startswith(part) for k in keys), part
+    assert (ck / "buffer.npz").is_file()
+    meta = checkpoint.load_meta(ck)
+    assert meta["step"] == 300 and "host_rng" in meta
