@@ -1,7 +1,6 @@
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import pytest  # noqa: E402
 

@@ -36,3 +36,26 @@ def _report(sub) -> None:
 
 
 _EXTRA_COMMANDS.extend([_plot, _report])
+
+
+def _render(sub) -> None:
+    p = sub.add_parser("render", help="video of the saved policy with the MC reward timeline")
+    p.add_argument("run_dir")
+    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--format", choices=("mp4", "gif"), default="mp4")
+    p.add_argument("--checkpoint", type=int, metavar="STEP", help="a checkpoint's step (default: the newest)")
+    p.add_argument("--out", help="video path (default RUN_DIR/videos/policy_step<STEP>.<format>)")
+    p.add_argument("--fps", type=float, default=25.0)
+
+    def run(args) -> int:
+        from mcrl.render import render_run
+
+        path = render_run(args.run_dir, episodes=args.episodes, fmt=args.format, checkpoint_step=args.checkpoint,
+                          out=args.out, fps=args.fps)
+        print(f"wrote {path}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
+_EXTRA_COMMANDS.append(_render)

@@ -17,7 +17,6 @@ _registered = False
 def _register() -> None:
     global _registered
     if not _registered:
-        os.environ.setdefault("MUJOCO_GL", "egl")  # only used if rendering; headless-safe default
         import contextlib
         import io
 
