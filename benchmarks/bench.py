@@ -23,7 +23,7 @@ What is measured, and how
    buffer 1,000,000, ``HerReplayBuffer`` strategy ``future`` with 4 sampled goals, train_freq 1,
    gradient_steps 1, learning_starts 1000, automatic entropy coefficient). One ``learn()`` call
    runs the 1000 random warm-up steps, then ``warmup_grad_steps`` learning steps that are not
-   timed (allocator and caches settle), then the untimed thread probe (below); a second
+   timed (allocator and caches settle), then the thread probe (below); a second
    ``learn(reset_num_timesteps=False)`` call continues the same run for ``repeats`` windows of
    ``steps`` env steps each.
    Per window:
@@ -40,9 +40,10 @@ What is measured, and how
    after the timed windows with ``torch.utils.flop_counter.FlopCounterMode`` (matmul FLOPs,
    forward and backward, which is what the roofline measures too).
    torch's intra-op thread count (``torch.set_num_threads``) is chosen by a probe: after the
-   warm-up, ``probe_steps`` untimed steps run with 1 thread and with all usable cores, and the
-   faster count is used for the timed windows (one thread won on a 2-core AMD Zen 3 machine,
-   two threads on a 2-core Intel Sapphire Rapids one). ``--torch-threads N`` skips the probe.
+   warm-up, a few gradient steps (at most 3 s) are timed with 1 thread and with all usable
+   cores, and the faster count is used for the timed windows. (One thread won on an idle
+   2-core AMD Zen 3 machine and on a busy 2-core Intel Sapphire Rapids one; two threads won
+   on the latter when idle.) ``--torch-threads N`` skips the probe.
 
 3. **mcrl** (:func:`mcrl_numbers`) for the presets ``fetchpush-sac`` and
    ``fetchpush-sacmc-0.2``, delegated to ``mcrl.benchmarking.measure_training``, which returns
@@ -204,9 +205,8 @@ def roofline_gflops(
 
 
 def _make_timed_sac_class():
-    """SAC subclass that logs each rollout step and ``train`` call, and can switch torch's
-    thread count at given step counts (``thread_schedule``: num_timesteps -> threads)."""
-    import torch
+    """SAC subclass that logs the start time and duration of each rollout step and of each
+    ``train`` call."""
     from stable_baselines3 import SAC
 
     class TimedSAC(SAC):
@@ -215,13 +215,9 @@ def _make_timed_sac_class():
             # (num_timesteps before the call, perf_counter at its start, duration)
             self.rollout_log: list[tuple[int, float, float]] = []
             self.train_log: list[tuple[int, float]] = []  # (num_timesteps after, duration)
-            self.thread_schedule: dict[int, int] = {}
 
         def collect_rollouts(self, *args, **kwargs):
-            n = self.num_timesteps
-            if n in self.thread_schedule:
-                torch.set_num_threads(self.thread_schedule[n])
-            t0 = time.perf_counter()
+            n, t0 = self.num_timesteps, time.perf_counter()
             out = super().collect_rollouts(*args, **kwargs)
             self.rollout_log.append((n, t0, time.perf_counter() - t0))
             return out
@@ -250,22 +246,48 @@ def _window_stats(model, lo: int, hi: int) -> dict:
     }
 
 
+def _probe_torch_threads(model, candidates: list[int], max_calls: int, max_s: float) -> dict:
+    """Median ms of one SB3 gradient step (``model.train``) for each torch thread count.
+
+    Each candidate gets two untimed calls, then up to ``max_calls`` timed ones or ``max_s``
+    seconds, whichever ends first (two threads on a busy 2-core machine can be 50x slower,
+    so the probe must not run a fixed number of steps). The extra updates only happen during
+    warm-up, so they do not affect the timed windows.
+    """
+    import torch
+
+    batch_size = SB3_SAC_KWARGS["batch_size"]
+    result = {}
+    for threads in candidates:
+        torch.set_num_threads(threads)
+        times: list[float] = []
+        t_start = time.perf_counter()
+        for i in range(max_calls + 2):
+            t0 = time.perf_counter()
+            model.train(gradient_steps=1, batch_size=batch_size)
+            if i >= 2:
+                times.append(time.perf_counter() - t0)
+            if time.perf_counter() - t_start > max_s:
+                break
+        result[threads] = 1e3 * statistics.median(times) if times else math.inf
+    return result
+
+
 def sb3_steps_per_s(
     steps: int,
     repeats: int,
-    warmup_grad_steps: int = 200,
+    warmup_grad_steps: int = 300,
     torch_threads: int | None = None,
-    probe_steps: int = 100,
     env_id: str = "FetchPush-v4",
     seed: int = 0,
 ) -> dict:
     """Training-loop speed of SB3 SAC+HER at the thesis' settings (see the module docstring).
 
     Runs ``learning_starts`` (1000) random steps and ``warmup_grad_steps`` untimed learning
-    steps. With ``torch_threads=None`` it then runs ``probe_steps`` more untimed steps with
-    each candidate thread count (1 and the number of usable cores) and keeps the fastest;
-    otherwise it uses ``torch_threads``. Then come ``repeats`` timed windows of ``steps`` env
-    steps (one gradient step each). Returns medians over the windows plus the per-window
+    steps. With ``torch_threads=None`` it then times a few gradient steps with each candidate
+    thread count (1 and the number of usable cores) and keeps the fastest; otherwise it uses
+    ``torch_threads``. Then the same run continues for ``repeats`` timed windows of ``steps``
+    env steps (one gradient step each). Returns medians over the windows plus the per-window
     values, the probe results and the settings used.
     """
     import gymnasium as gym
@@ -277,12 +299,9 @@ def sb3_steps_per_s(
 
     gym.register_envs(gymnasium_robotics)
     previous_threads = torch.get_num_threads()
-    if torch_threads is None:
-        candidates = sorted({1, _usable_cores()})
-    else:
-        candidates, probe_steps = [torch_threads], 0
+    candidates = sorted({1, _usable_cores()}) if torch_threads is None else [torch_threads]
     try:
-        torch.set_num_threads(candidates[-1])
+        torch.set_num_threads(candidates[0])
         env = gym.make(env_id)
         model = _make_timed_sac_class()(
             "MultiInputPolicy",
@@ -294,29 +313,25 @@ def sb3_steps_per_s(
             verbose=0,
             **SB3_SAC_KWARGS,
         )
-        # Untimed part: random steps, warm-up learning steps, thread-count probes.
-        probe_lo = SB3_SAC_KWARGS["learning_starts"] + warmup_grad_steps
-        probes = [(t, probe_lo + i * probe_steps) for i, t in enumerate(candidates)]
-        start = probe_lo + len(candidates) * probe_steps
-        model.thread_schedule = {lo: t for t, lo in probes}
+        start = SB3_SAC_KWARGS["learning_starts"] + warmup_grad_steps
         _log(
             f"sb3: {SB3_SAC_KWARGS['learning_starts']} random + {warmup_grad_steps} warm-up "
-            f"learning steps, thread probes {candidates} x {probe_steps} steps, "
+            f"learning steps, torch thread candidates {candidates}, "
             f"then {repeats} x {steps} timed steps"
         )
         t_learn = time.perf_counter()
-        model.learn(total_timesteps=start + 1)  # +1 starts step `start`: closes the last probe
-        probe = {}
-        if probe_steps:
-            probe = {t: _window_stats(model, lo, lo + probe_steps)["steps_per_s"]
-                     for t, lo in probes}
-            _log("sb3 thread probe (steps/s): "
-                 + ", ".join(f"{t} thread(s) {v:.1f}" for t, v in probe.items()))
-        threads = max(probe, key=probe.get) if probe else candidates[0]
-        torch.set_num_threads(threads)
-        model.thread_schedule = {}
+        model.learn(total_timesteps=start)
 
-        # Timed part: the same training loop, continued.
+        probe: dict[int, float] = {}
+        if len(candidates) > 1:
+            probe = _probe_torch_threads(model, candidates, max_calls=40, max_s=3.0)
+            _log("sb3 thread probe (ms/grad step): "
+                 + ", ".join(f"{t} thread(s) {v:.1f}" for t, v in probe.items()))
+        threads = min(probe, key=probe.get) if probe else candidates[0]
+        torch.set_num_threads(threads)
+
+        # Timed part: the same training loop, continued. The +1 starts one more step, whose
+        # start time closes the last window.
         bounds = [start + i * steps for i in range(repeats + 1)]
         model.learn(total_timesteps=bounds[-1] + 1, reset_num_timesteps=False)
         learn_s = time.perf_counter() - t_learn
@@ -346,7 +361,7 @@ def sb3_steps_per_s(
         "ms_per_env_step": med("ms_per_env_step"),
         "grad_step_gflop": grad_step_gflop,
         "torch_threads": threads,
-        "thread_probe_steps_per_s": probe,
+        "thread_probe_ms_per_grad_step": probe,
         "windows": windows,
         "learn_wall_s": learn_s,
         "settings": {
@@ -354,7 +369,6 @@ def sb3_steps_per_s(
             "steps": steps,
             "repeats": repeats,
             "warmup_grad_steps": warmup_grad_steps,
-            "probe_steps": probe_steps,
             "seed": seed,
             "sac": SB3_SAC_KWARGS,
             "her": SB3_HER_KWARGS,
@@ -497,7 +511,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--torch-threads", type=int, default=None,
                    help="torch.set_num_threads for SB3 (default: probe 1 and all cores, "
                         "keep the faster)")
-    p.add_argument("--sb3-warmup-grad-steps", type=int, default=200,
+    p.add_argument("--sb3-warmup-grad-steps", type=int, default=300,
                    help="untimed SB3 learning steps after learning_starts")
     p.add_argument("--roofline-repeats", type=int, default=7)
     args = p.parse_args(argv)

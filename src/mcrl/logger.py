@@ -64,12 +64,25 @@ class RunLogger:
             self.tb.add_scalar("eval/success_rate", row["success_rate"], row["step"])
             self.tb.add_scalar("eval/mean_return", row["mean_return"], row["step"])
 
-    def log_video(self, tag: str, frames, step: int, fps: int = 25) -> None:
-        if self.tb is not None:
-            import numpy as np
+    def log_video(self, tag: str, frames, step: int, fps: float = 25.0) -> None:
+        """An animated GIF image summary (TensorBoard shows it in the Images tab; no moviepy needed)."""
+        if self.tb is None or not frames:
+            return
+        import tempfile
 
-            vid = np.asarray(frames)[None].transpose(0, 1, 4, 2, 3)  # (N, T, C, H, W)
-            self.tb.add_video(tag, vid, step, fps=fps)
+        from tensorboardX.proto.summary_pb2 import Summary
+
+        from mcrl.video import write_video
+
+        with tempfile.TemporaryDirectory() as d:
+            path = write_video(frames, Path(d) / "v.gif", fmt="gif", fps=fps)
+            data = path.read_bytes()
+            from PIL import Image
+
+            with Image.open(path) as im:
+                w, h = im.size
+        image = Summary.Image(height=h, width=w, colorspace=3, encoded_image_string=data)
+        self.tb._get_file_writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
 
     def close(self) -> None:
         if self.tb is not None:

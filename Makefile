@@ -1,0 +1,28 @@
+# Two entry points on a fresh clone:  `make demo`  and  `make test`.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+
+.PHONY: install system-packages demo test bench
+install: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	$(BIN)/pip install -q -e ".[test]"
+	touch $@
+
+# Debian packages for headless MuJoCo rendering (EGL on the CPU); needs root or sudo.
+system-packages:
+	bash .ci/system-packages.sh
+
+# The main job: a short SAC-MC training on FetchReach at the thesis' network sizes (a few minutes on 2 cores).
+demo: install
+	$(BIN)/mcrl train
+
+test: system-packages install
+	$(BIN)/python -m pytest
+
+bench: install
+	$(BIN)/pip install -q -e ".[bench]"
+	$(BIN)/python benchmarks/bench.py --json benchmarks/results.json

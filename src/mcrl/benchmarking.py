@@ -1,0 +1,112 @@
+"""Speed measurements of mcrl's own training (used by benchmarks/bench.py).
+
+- steps/s: the real training loop (`mcrl.trainer.train`), read off the per-interval wall-clock times
+  in metrics.csv after warm-up; one interval per repetition, median reported.
+- ms per gradient step: the jitted update alone on replay batches, synchronised, median of repetitions.
+- ms per environment step: policy forward pass + env.step + buffer insert, median of repetitions.
+- GFLOP per gradient step: XLA's own cost analysis of the compiled update.
+"""
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from mcrl.config import resolve_config
+from mcrl.envs import episode_seed, flatten_obs, to_env_action
+from mcrl.logger import read_csv
+from mcrl.sac import Batch
+from mcrl.trainer import _build, train
+
+
+def _flops(compiled) -> float:
+    cost = compiled.cost_analysis()
+    if isinstance(cost, (list, tuple)):
+        cost = cost[0]
+    return float(cost.get("flops", float("nan")))
+
+
+def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: dict | None = None) -> dict:
+    """ms per jitted gradient step (median over `repeats` blocks of `calls`) and its GFLOP."""
+    cfg = resolve_config(preset, {"buffer_size": 20_000, **(overrides or {})})
+    env, spec, agent, buffer = _build(cfg)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    for i in range(max(cfg.batch_size * 2, 1000)):  # a buffer of real transitions with finished episodes
+        a = rng.uniform(-1, 1, spec.act_dim).astype(np.float32)
+        nxt, r, term, trunc, _ = env.step(to_env_action(a, env, cfg.action_scale))
+        buffer.add(flatten_obs(obs), a, r, flatten_obs(nxt), term, term or trunc)
+        obs = nxt if not (term or trunc) else env.reset(seed=i)[0]
+    env.close()
+    batches = [buffer.sample(cfg.batch_size, rng) for _ in range(8)]
+    batches = [Batch(b["obs"], b["action"], b["reward"], b["next_obs"], b["terminated"]) for b in batches]
+    state = agent.init(0)
+    update = jax.jit(agent.update, donate_argnums=0)
+    gflop = _flops(jax.jit(agent.update).lower(state, batches[0]).compile()) / 1e9
+    for i in range(10):
+        state = update(state, batches[i % 8])
+    jax.block_until_ready(state)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for i in range(calls):
+            state = update(state, batches[i % 8])
+        jax.block_until_ready(state)
+        times.append((time.perf_counter() - t) / calls * 1e3)
+    return {"ms_per_grad_step": statistics.median(times), "ms_per_grad_step_all": times, "grad_step_gflop": gflop}
+
+
+def measure_env_step(preset: str, repeats: int = 5, steps: int = 500) -> dict:
+    """ms per environment step of the acting path: actor forward + env.step + buffer insert."""
+    cfg = resolve_config(preset, {"buffer_size": 20_000})
+    env, spec, agent, buffer = _build(cfg)
+    state = agent.init(0)
+    act = jax.jit(agent.act)
+    key = jax.random.PRNGKey(0)
+    obs, _ = env.reset(seed=0)
+    flat = flatten_obs(obs)
+    times, episode = [], 0
+    for rep in range(repeats + 1):
+        t = time.perf_counter()
+        for i in range(steps):
+            a = np.asarray(act(state.actor, flat[None], jax.random.fold_in(key, i)))[0]
+            nxt, r, term, trunc, _ = env.step(to_env_action(a, env, cfg.action_scale))
+            nflat = flatten_obs(nxt)
+            buffer.add(flat, a, r, nflat, term, term or trunc)
+            flat = nflat
+            if term or trunc:
+                episode += 1
+                flat = flatten_obs(env.reset(seed=episode_seed(0, 0, episode))[0])
+        if rep > 0:  # the first block compiles
+            times.append((time.perf_counter() - t) / steps * 1e3)
+    env.close()
+    return {"ms_per_env_step": statistics.median(times), "ms_per_env_step_all": times}
+
+
+def measure_loop(preset: str, steps: int = 1000, repeats: int = 3, warmup: int = 1000,
+                 overrides: dict | None = None) -> dict:
+    """Env steps/s of the real training loop: `repeats` intervals of `steps` after `warmup` learning steps."""
+    cfg = resolve_config(preset, {"eval_every": 0, "eval_episodes": 1, "checkpoint_every": 10**9,
+                                  "save_buffer": False, "log_every": steps, **(overrides or {})})
+    first = cfg.learning_starts + warmup
+    first += (-first) % steps  # start timing on an interval boundary
+    cfg.total_steps = first + (repeats + 1) * steps  # one extra interval: the last one holds the final eval
+    with tempfile.TemporaryDirectory() as d:
+        run = train(cfg, Path(d) / "bench", progress=False)
+        rows = read_csv(run / "metrics.csv")
+    t = {int(r["step"]): r["time_s"] for r in rows}
+    rates = [steps / (t[s + steps] - t[s]) for s in range(first, first + repeats * steps, steps)]
+    return {"steps_per_s": statistics.median(rates), "steps_per_s_all": rates}
+
+
+def measure_training(preset: str, steps: int = 1000, repeats: int = 3) -> dict:
+    """All of the above for one preset (the numbers benchmarks/bench.py reports)."""
+    out = {"preset": preset}
+    out.update(measure_loop(preset, steps=steps, repeats=repeats))
+    out.update(measure_update(preset, repeats=max(repeats, 3)))
+    out.update(measure_env_step(preset, repeats=max(repeats, 3)))
+    return out
