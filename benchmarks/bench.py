@@ -30,12 +30,15 @@ What is measured, and how
 
    * steps/s = env steps / wall time of the window (each env step is followed by one
      gradient step, so this is the training loop's throughput);
-   * ms/grad step = time inside ``SAC.train`` (replay sampling with HER relabelling, the
-     critic, actor and entropy-coefficient updates, the Polyak update) / gradient steps;
+   * ms/grad step = time inside ``SAC.train`` minus the replay sampling in it (so: the
+     critic, actor and entropy-coefficient updates and the Polyak update) / gradient steps,
+     which matches mcrl's "jitted update alone";
+   * ms/replay sample (JSON only) = ``HerReplayBuffer.sample`` (with HER relabelling and the
+     reward recomputation) / gradient steps;
    * ms/env step = time inside ``collect_rollouts`` (policy forward pass, ``env.step``,
      replay-buffer insert) / env steps.
 
-   The two add up to almost all of 1000 / (steps/s); the rest is SB3's loop bookkeeping.
+   The three add up to almost all of 1000 / (steps/s); the rest is SB3's loop bookkeeping.
    Reported values are medians over the windows. FLOPs of one gradient step are counted once
    after the timed windows with ``torch.utils.flop_counter.FlopCounterMode`` (matmul FLOPs,
    forward and backward, which is what the roofline measures too).
@@ -47,9 +50,11 @@ What is measured, and how
 
 3. **mcrl** (:func:`mcrl_numbers`) for the presets ``fetchpush-sac`` and
    ``fetchpush-sacmc-0.2``, delegated to ``mcrl.benchmarking.measure_training``, which returns
-   the medians ``steps_per_s``, ``ms_per_grad_step``, ``ms_per_env_step`` and
-   ``grad_step_gflop`` measured the same way. If mcrl cannot be imported the table says
-   ``mcrl: not available`` and the other parts still run.
+   the medians ``steps_per_s`` (the real training loop), ``ms_per_grad_step`` (the jitted
+   update alone, without replay sampling), ``ms_per_env_step`` and ``grad_step_gflop`` (XLA's
+   cost analysis of the compiled update: all ops, not only matmuls, so it can differ a little
+   from torch's matmul-only count for the same network sizes). If mcrl cannot be imported the
+   table says ``mcrl: not available`` and the other parts still run.
 
 Derived columns: achieved GFLOP/s = grad_step_gflop / (ms_per_grad_step / 1000);
 roofline ms/grad step = grad_step_gflop / roofline GFLOP/s * 1000; "% of roofline" (JSON key
@@ -205,8 +210,8 @@ def roofline_gflops(
 
 
 def _make_timed_sac_class():
-    """SAC subclass that logs the start time and duration of each rollout step and of each
-    ``train`` call."""
+    """SAC subclass that logs the start time and duration of each rollout step, and the
+    duration of each ``train`` call and of the replay sampling inside it."""
     from stable_baselines3 import SAC
 
     class TimedSAC(SAC):
@@ -214,7 +219,18 @@ def _make_timed_sac_class():
             super()._setup_model()
             # (num_timesteps before the call, perf_counter at its start, duration)
             self.rollout_log: list[tuple[int, float, float]] = []
-            self.train_log: list[tuple[int, float]] = []  # (num_timesteps after, duration)
+            # (num_timesteps after the rollout step, train() duration, replay-sampling part)
+            self.train_log: list[tuple[int, float, float]] = []
+            self._sample_s = 0.0
+            sample = self.replay_buffer.sample
+
+            def timed_sample(*args, **kwargs):
+                t0 = time.perf_counter()
+                out = sample(*args, **kwargs)
+                self._sample_s += time.perf_counter() - t0
+                return out
+
+            self.replay_buffer.sample = timed_sample
 
         def collect_rollouts(self, *args, **kwargs):
             n, t0 = self.num_timesteps, time.perf_counter()
@@ -223,9 +239,10 @@ def _make_timed_sac_class():
             return out
 
         def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+            self._sample_s = 0.0
             t0 = time.perf_counter()
             super().train(gradient_steps, batch_size)
-            self.train_log.append((self.num_timesteps, time.perf_counter() - t0))
+            self.train_log.append((self.num_timesteps, time.perf_counter() - t0, self._sample_s))
 
     return TimedSAC
 
@@ -237,11 +254,14 @@ def _window_stats(model, lo: int, hi: int) -> dict:
     wall = starts[hi] - starts[lo]
     rollout = sum(d for n, _, d in model.rollout_log if lo <= n < hi)
     # train() runs after the rollout step that took num_timesteps from n-1 to n.
-    train = [d for n, d in model.train_log if lo < n <= hi]
+    train = [(d, sample) for n, d, sample in model.train_log if lo < n <= hi]
+    train_s = sum(d for d, _ in train)
+    sample_s = sum(sample for _, sample in train)
     return {
         "steps_per_s": (hi - lo) / wall,
         "ms_per_env_step": 1e3 * rollout / (hi - lo),
-        "ms_per_grad_step": 1e3 * sum(train) / len(train),
+        "ms_per_grad_step": 1e3 * (train_s - sample_s) / len(train),
+        "ms_per_replay_sample": 1e3 * sample_s / len(train),
         "grad_steps": len(train),
     }
 
@@ -341,6 +361,7 @@ def sb3_steps_per_s(
             _log(
                 f"sb3 window ({threads} thread(s)): {windows[-1]['steps_per_s']:.1f} steps/s, "
                 f"{windows[-1]['ms_per_grad_step']:.2f} ms/grad, "
+                f"{windows[-1]['ms_per_replay_sample']:.2f} ms/replay sample, "
                 f"{windows[-1]['ms_per_env_step']:.2f} ms/env"
             )
 
@@ -359,6 +380,7 @@ def sb3_steps_per_s(
         "steps_per_s": med("steps_per_s"),
         "ms_per_grad_step": med("ms_per_grad_step"),
         "ms_per_env_step": med("ms_per_env_step"),
+        "ms_per_replay_sample": med("ms_per_replay_sample"),
         "grad_step_gflop": grad_step_gflop,
         "torch_threads": threads,
         "thread_probe_ms_per_grad_step": probe,

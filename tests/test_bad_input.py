@@ -102,3 +102,10 @@ def test_console_script_exit_code():
     res = subprocess.run([sys.executable, "-m", "mcrl.cli", "train", "--set", "mc_alpha=2"], capture_output=True,
                          text=True)
     assert res.returncode == 2 and res.stderr.strip().startswith("mcrl: error: mc_alpha=2.0")
+
+
+def test_training_into_an_existing_run_directory_is_refused(finished_run, capsys):
+    before = (finished_run / "metrics.csv").read_text()
+    rc = main(["train", "--run-dir", str(finished_run), "--steps", "100"])
+    assert rc == 2 and "already holds a run" in capsys.readouterr().err
+    assert (finished_run / "metrics.csv").read_text() == before

@@ -90,6 +90,9 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     env, spec, agent, buffer = _build(cfg)  # validates env and spaces before anything is written
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
     ckpt = None
+    if not resume and (run_dir / "config.json").exists():
+        raise MCRLError(f"{run_dir} already holds a run: continue it with `mcrl train --resume {run_dir}` or "
+                        "choose another --run-dir")
     if resume:
         try:
             ckpt = checkpoint.find(run_dir)
@@ -99,6 +102,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     rng = np.random.default_rng(cfg.seed)
     step = episode = last_ckpt = eval_round = 0
     interval = {"returns": [], "successes": []}
+    last_eval = {"success_rate": None, "mean_return": None}
     if ckpt is not None:
         state, meta = restore(cfg, agent, ckpt)
         arrays = checkpoint.load_buffer_arrays(ckpt) if meta["has_buffer"] else None
@@ -108,7 +112,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
         buffer.load_arrays(arrays)
         rng.bit_generator.state = meta["host_rng"]
         step, episode, eval_round = meta["step"], meta["episode"], meta["eval_round"]
-        last_ckpt, interval = step, meta["interval"]
+        last_ckpt, interval, last_eval = step, meta["interval"], meta["last_eval"]
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(cfg.to_json())
     (run_dir / "done").unlink(missing_ok=True)
@@ -119,12 +123,11 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     act = jax.jit(agent.act)
     act_key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 0x5EED)
     t_start, steps_at_start = time.perf_counter(), step
-    last_eval = {"success_rate": None, "mean_return": None}
     end = cfg.total_steps if stop_at is None else min(stop_at, cfg.total_steps)
 
     def save_checkpoint():
         meta = {"episode": episode, "eval_round": eval_round, "host_rng": rng.bit_generator.state,
-                "interval": interval, "config": cfg.to_dict()}
+                "interval": interval, "last_eval": last_eval, "config": cfg.to_dict()}
         checkpoint.save(run_dir, step, state, meta, buffer.state_arrays() if cfg.save_buffer else None,
                         cfg.keep_checkpoints)
 

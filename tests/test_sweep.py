@@ -1,0 +1,315 @@
+"""`mcrl sweep`: local and Ray backends give the same runs, a killed sweep resumes, MLflow tracking,
+bad input.
+
+Tiny runs (300 steps, small networks); the sweeps run through the CLI in subprocesses, as a user
+would run them. The whole file takes about 3-4 minutes on 2 cores.
+"""
+import csv
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from mcrl.cli import main
+
+TINY = {"hidden_sizes": "[64,64]", "mc_hidden_sizes": "[64,64]", "batch_size": 64, "buffer_size": 20000,
+        "mc_history": 4096, "eval_every": 150, "eval_episodes": 2, "log_every": 100, "learning_starts": 100,
+        "checkpoint_every": 100}
+STEPS = 300
+# metrics.csv columns that depend on the learning (not on wall-clock time)
+LEARNING_COLUMNS = ("step", "episodes", "train_return", "train_success_rate", "eval_success_rate",
+                    "eval_mean_return", "actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean",
+                    "transition_model_loss", "action_model_loss", "mean_ext_reward", "mean_mc_reward",
+                    "mean_total_reward", "mean_raw_kl", "mc_bound_low", "mc_bound_high")
+CLI = [sys.executable, "-c", "import sys; from mcrl.cli import main; sys.exit(main())"]
+
+
+def _sets():
+    out = []
+    for k, v in TINY.items():
+        out += ["--set", f"{k}={v}"]
+    return out
+
+
+def _sweep_args(exp, alphas="0,0.2", seeds="2", *extra):
+    return ["sweep", "--preset", "fetchreach-sacmc", "--alphas", alphas, "--seeds", seeds, "--steps", str(STEPS),
+            *_sets(), "--exp", str(exp), "--no-progress", *extra]
+
+
+def _run_cli(args, env=None, timeout=400):
+    res = subprocess.run(CLI + args, capture_output=True, text=True, timeout=timeout,
+                         env={**os.environ, **(env or {})})
+    return res
+
+
+def _learning_rows(path):
+    with open(path) as f:
+        return [{k: r[k] for k in LEARNING_COLUMNS} for r in csv.DictReader(f)]
+
+
+def _same_run(a, b):
+    assert (a / "done").exists() and (b / "done").exists()
+    assert (a / "eval.csv").read_text() == (b / "eval.csv").read_text()
+    assert _learning_rows(a / "metrics.csv") == _learning_rows(b / "metrics.csv")
+
+
+@pytest.fixture(scope="module")
+def local_exp(tmp_path_factory):
+    """2 alphas x 2 seeds on the local backend, tracked in MLflow (the reference for the other tests)."""
+    exp = tmp_path_factory.mktemp("sweeps") / "local"
+    res = _run_cli(_sweep_args(exp, "0,0.2", "2", "--backend", "local", "--workers", "2", "--tracking"))
+    assert res.returncode == 0, res.stdout + res.stderr
+    return exp, res.stdout
+
+
+RUN_NAMES = ["a0-s0", "a0.2-s0", "a0-s1", "a0.2-s1"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_local_sweep_writes_the_experiment_directory(local_exp):
+    exp, out = local_exp
+    sweep = json.loads((exp / "sweep.json").read_text())
+    assert sweep["preset"] == "fetchreach-sacmc"
+    assert [r["name"] for r in sweep["runs"]] == RUN_NAMES  # seeds outermost
+    assert [(r["config_key"], r["seed"]) for r in sweep["runs"]] == [
+        ("alpha=0", 0), ("alpha=0.2", 0), ("alpha=0", 1), ("alpha=0.2", 1)]
+    assert sweep["runs"][1]["overrides"]["mc_alpha"] == 0.2
+    for name in RUN_NAMES:
+        run = exp / "runs" / name
+        assert (run / "done").exists()
+        cfg = json.loads((run / "config.json").read_text())
+        assert cfg["total_steps"] == STEPS and cfg["seed"] == int(name[-1])
+        assert cfg["mc_alpha"] == (0.2 if name.startswith("a0.2") else 0.0)
+        assert re.search(rf"start {re.escape(name)} \(pid \d+\)", out)
+        assert re.search(rf"finished {re.escape(name)} in", out)
+    from mcrl.report import load_experiment
+
+    loaded = load_experiment(exp)  # the format `mcrl report` reads
+    assert [g.key for g in loaded.configs] == ["alpha=0", "alpha=0.2"]
+    assert all(r.status == "finished" for r in loaded.runs)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_ray_backend_gives_the_same_runs(local_exp, tmp_path):
+    exp, _ = local_exp
+    ray_exp = tmp_path / "ray"
+    # one run pretends its worker cannot see EXP: it trains in a temporary directory and ships its files back
+    res = _run_cli(_sweep_args(ray_exp, "0,0.2", "2", "--backend", "ray", "--workers", "2"),
+                   env={"MCRL_SWEEP_SHIP_FILES": "a0.2-s1"})
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "start a0.2-s1 (pid" in res.stdout and "files shipped back" in res.stdout
+    for name in RUN_NAMES:
+        _same_run(exp / "runs" / name, ray_exp / "runs" / name)
+    shipped = ray_exp / "runs" / "a0.2-s1"
+    assert (shipped / "checkpoints" / "latest").read_text().strip() == f"step_{STEPS:09d}"
+    assert list(shipped.glob("events.out.tfevents.*"))
+    assert json.loads((ray_exp / "sweep.json").read_text())["runs"] == json.loads((exp / "sweep.json").read_text())["runs"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_mlflow_holds_every_run_and_rerun_skips_finished_runs(local_exp):
+    import mlflow
+    from mlflow import MlflowClient
+
+    exp, out = local_exp
+    uri = f"sqlite:///{exp / 'mlflow.db'}"
+    assert f"mlflow ui --backend-store-uri {uri}" in out
+    client = MlflowClient(tracking_uri=uri)
+    mlflow.set_tracking_uri(uri)
+    try:
+        df = mlflow.search_runs(experiment_names=[exp.name])
+    finally:
+        mlflow.set_tracking_uri(None)
+    assert sorted(df["tags.mlflow.runName"]) == sorted(RUN_NAMES)
+    assert set(df["status"]) == {"FINISHED"}
+    for _, row in df.iterrows():
+        name = row["tags.mlflow.runName"]
+        cfg = json.loads((exp / "runs" / name / "config.json").read_text())
+        assert float(row["params.mc_alpha"]) == cfg["mc_alpha"] and int(row["params.seed"]) == cfg["seed"]
+        assert row["params.hidden_sizes"] == "[64, 64]" and row["params.config_key"].startswith("alpha=")
+        with open(exp / "runs" / name / "eval.csv") as f:
+            evals = list(csv.DictReader(f))
+        hist = client.get_metric_history(row["run_id"], "eval/success_rate")
+        assert [(m.step, m.value) for m in hist] == [(int(e["step"]), float(e["success_rate"])) for e in evals]
+        loss = client.get_metric_history(row["run_id"], "critic_loss")
+        assert [m.step for m in loss] == [200, 300]
+        arts = {a.path for a in client.list_artifacts(row["run_id"])}
+        assert {"curves.png", "config.json", "metrics.csv", "eval.csv"} <= arts
+    assert (exp / "mlartifacts").is_dir()
+
+    # `mcrl sweep --exp EXP` alone continues the recorded sweep: everything is finished, nothing logged twice
+    before = {p: p.stat().st_mtime_ns for p in exp.glob("runs/*/*.csv")}
+    res = _run_cli(["sweep", "--exp", str(exp), "--no-progress", "--tracking"])
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.count("already finished") == 4
+    assert {p: p.stat().st_mtime_ns for p in exp.glob("runs/*/*.csv")} == before
+    assert len(client.search_runs([df["experiment_id"][0]])) == 4
+
+
+class _Lines:
+    """Collects a subprocess' stdout lines in a thread."""
+
+    def __init__(self, proc):
+        self.lines: list[str] = []
+        self._t = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._t.start()
+
+    def _read(self, proc):
+        for line in proc.stdout:
+            self.lines.append(line)
+
+    def text(self):
+        return "".join(self.lines)
+
+
+def _wait_for(cond, proc, what, timeout=240):
+    deadline = time.time() + timeout
+    while not cond():
+        assert proc.poll() is None, f"sweep ended before {what}"
+        assert time.time() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_killed_worker_and_killed_sweep_resume_to_the_same_numbers(local_exp, tmp_path):
+    ref, _ = local_exp
+    exp = tmp_path / "killed"
+    args = _sweep_args(exp, "0.2", "2", "--workers", "2")  # runs a0.2-s0 and a0.2-s1, as in the reference
+    proc = subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    out = _Lines(proc)
+    try:
+        # 1. SIGKILL one worker after its run's first checkpoint: the driver reports it and goes on
+        _wait_for(lambda: list(exp.glob("runs/*/checkpoints/latest")), proc, "a first checkpoint")
+        victim = exp.glob("runs/*/checkpoints/latest").__next__().parent.parent.name
+        pid = int(re.search(rf"start {re.escape(victim)} \(pid (\d+)\)", out.text()).group(1))
+        os.kill(pid, signal.SIGKILL)
+        _wait_for(lambda: f"FAILED {victim}" in out.text(), proc, "the driver to report the killed worker")
+        assert not (exp / "runs" / victim / "done").exists()
+        # 2. SIGKILL the whole sweep (driver and the other worker) while the other run is still going
+        other = next(n for n in ("a0.2-s0", "a0.2-s1") if n != victim)
+        if not (exp / "runs" / other / "done").exists():
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert f"worker killed by signal {int(signal.SIGKILL)}" in out.text()
+    time.sleep(1.0)  # the killed driver's workers die with it (no one else writes into EXP)
+
+    res = _run_cli(args)  # the same command again
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert re.search(rf"resume {re.escape(victim)} from step \d+", res.stdout), res.stdout
+    for name in ("a0.2-s0", "a0.2-s1"):
+        _same_run(ref / "runs" / name, exp / "runs" / name)
+
+
+def _closed_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _write(tmp_path, text):
+    p = tmp_path / "sweep.yaml"
+    p.write_text(text)
+    return str(p)
+
+
+BAD_FILES = [
+    ("preset: fetchreach-sacmc\ngrid: {mc_alpha: [0, 0.2], no_such_key: [1]}\n", "unknown config key"),
+    ("preset: fetchreach-sacmc\ngrid: {mc_alpha: [0, 0.2]}\nset: {bogus: 3}\n", "unknown config key"),
+    ("preset: fetchreach-sacmc\ngrid: {mc_alpha: [0, 1.5]}\n", "outside [0, 1]"),
+    ("preset: fetchreach-sacmc\ngrid: {}\n", "grid is empty"),
+    ("preset: fetchreach-sacmc\n", "grid is empty"),
+    ("preset: fetchreach-sacmc\ngrid: {mc_alpha: []}\n", "non-empty list"),
+    ("preset: fetchreach-sacmc\ngrids: {mc_alpha: [0]}\n", "unknown top-level key"),
+    ("preset: no-such-preset\ngrid: {mc_alpha: [0]}\n", "unknown preset"),
+    ("preset: fetchreach-sacmc\ngrid: {env_id: [NoSuchEnv-v9]}\n", "unknown environment"),
+    ("preset: fetchreach-sacmc\ngrid: {mc_alpha: [0.2, 0.2]}\n", "same config"),
+    ("preset: fetchreach-sacmc\ngrid: {mc_alpha: [0, 0.2}\n", "not valid YAML"),
+    ("- just\n- a list\n", "YAML mapping"),
+]
+
+
+@pytest.mark.parametrize("text,needle", BAD_FILES)
+def test_bad_sweep_file(text, needle, tmp_path, capsys):
+    path = _write(tmp_path, text)
+    exp = tmp_path / "exp"
+    rc = main(["sweep", "--file", path, "--exp", str(exp), "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert needle in err and len(err.splitlines()) == 1, err
+    assert not exp.exists()
+
+
+@pytest.mark.parametrize("extra,needle", [
+    (["--alphas", ""], "empty grid"),
+    (["--alphas", "0,abc"], "comma-separated numbers"),
+    (["--alphas", "0,0.2", "--seeds", "0"], "at least 1"),
+    (["--alphas", "0,0.2", "--set", "nope=1"], "unknown config key"),
+    (["--alphas", "0,0.2", "--backend", "ray", "--address", "127.0.0.1:{port}"], "does not answer"),
+    (["--alphas", "0,0.2", "--backend", "ray", "--address", "not-an-address"], "HOST:PORT"),
+    (["--alphas", "0,0.2", "--tracking-uri", "http://127.0.0.1:{port}"], "cannot be reached"),
+    (["--alphas", "0,0.2", "--tracking", "--tracking-uri", "sqlite:////no/such/dir/mlflow.db"], "does not exist"),
+    (["--alphas", "0,0.2", "--address", "127.0.0.1:6379"], "--backend ray"),
+    (["--alphas", "0,0.2", "--workers", "0"], "--workers"),
+])
+def test_bad_sweep_arguments(extra, needle, tmp_path, capsys):
+    port = _closed_port()
+    exp = tmp_path / "exp"
+    args = ["sweep", "--preset", "fetchreach-sacmc", "--exp", str(exp), "--no-progress"]
+    rc = main(args + [a.format(port=port) for a in extra])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert needle in err and len(err.splitlines()) == 1, err
+    assert not exp.exists()
+
+
+def test_missing_sweep_file_and_foreign_directory(tmp_path, capsys):
+    rc = main(["sweep", "--file", str(tmp_path / "nope.yaml"), "--exp", str(tmp_path / "exp")])
+    assert rc == 2 and "not found" in capsys.readouterr().err
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    rc = main(["sweep", "--preset", "fetchreach-sacmc", "--alphas", "0", "--exp", str(other), "--no-progress"])
+    assert rc == 2 and "not a sweep directory" in capsys.readouterr().err
+    assert sorted(p.name for p in other.iterdir()) == ["notes.txt"]
+    assert not (tmp_path / "exp").exists()
+
+
+@pytest.mark.slow
+def test_rerun_with_a_different_config_is_refused(local_exp, capsys):
+    exp, _ = local_exp
+    before = (exp / "sweep.json").read_text()
+    rc = main(_sweep_args(exp, "0,0.2", "2")[:-3] + ["--steps", "600", "--exp", str(exp), "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "different config" in err and len(err.splitlines()) == 1, err
+    assert (exp / "sweep.json").read_text() == before
+
+
+def test_grid_file_plan_names_and_keys(tmp_path):
+    from mcrl.sweep import plan_from_file
+
+    path = _write(tmp_path, "preset: fetchreach-sacmc\n"
+                            "grid: {mc_alpha: [0, 0.2], batch_size: [64, 128], seed: [3, 5]}\n"
+                            "set: {total_steps: 300, hidden_sizes: [64, 64]}\n")
+    plan = plan_from_file(path)
+    assert len(plan.runs) == 8
+    first = plan.runs[0]
+    assert (first.name, first.config_key, first.seed) == ("a0-batch_size=64-s3", "alpha=0,batch_size=64", 3)
+    assert first.config.hidden_sizes == (64, 64) and first.config.total_steps == 300
+    assert [r.seed for r in plan.runs] == [3, 3, 3, 3, 5, 5, 5, 5]
+    assert len({r.name for r in plan.runs}) == 8
