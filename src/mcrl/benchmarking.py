@@ -16,6 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from mcrl import normaliser
 from mcrl.config import resolve_config
 from mcrl.envs import episode_seed, flatten_obs, to_env_action
 from mcrl.logger import read_csv
@@ -30,8 +31,12 @@ def _flops(compiled) -> float:
     return float(cost.get("flops", float("nan")))
 
 
-def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: dict | None = None) -> dict:
-    """ms per jitted gradient step (median over `repeats` blocks of `calls`) and its GFLOP."""
+def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: dict | None = None,
+                   full_history: bool = False) -> dict:
+    """ms per jitted gradient step (median over `repeats` blocks of `calls`) and its GFLOP.
+
+    With `full_history`, the normaliser starts full (`mc_history` values), as late in a long run.
+    """
     cfg = resolve_config(preset, {"buffer_size": 20_000, **(overrides or {})})
     env, spec, agent, buffer = _build(cfg)
     rng = np.random.default_rng(0)
@@ -45,6 +50,9 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
     batches = [buffer.sample(cfg.batch_size, rng) for _ in range(8)]
     batches = [Batch(b["obs"], b["action"], b["reward"], b["next_obs"], b["terminated"]) for b in batches]
     state = agent.init(0)
+    if full_history and state.norm is not None:
+        values = rng.lognormal(2.0, 1.5, cfg.mc_history).astype(np.float32)
+        state = state._replace(norm=normaliser.push(state.norm, values))
     update = jax.jit(agent.update, donate_argnums=0)
     gflop = _flops(jax.jit(agent.update).lower(state, batches[0]).compile()) / 1e9
     for i in range(10):
