@@ -84,3 +84,14 @@ def test_relabelled_transitions_carry_the_mc_reward():
     orig = batch._replace(obs=batch.obs.at[:, -3:].set(batch.obs[0, -3:] + 0.5))
     kl_orig = np.asarray(jax.jit(agent.mc_reward)(state, orig)[1])
     assert not np.allclose(kl_orig[rel], direct_kl[rel])
+
+
+def test_end_episode_closes_a_partial_episode_so_the_next_one_starts_fresh():
+    buf = ReplayBuffer(100, 4, 1, her=True, observation_dim=2, goal_dim=1, compute_reward=lambda a, g, i: -(a != g))
+    for t in range(3):
+        buf.add(np.zeros(4), np.zeros(1), 0.0, np.zeros(4), False, False)
+    assert not buf.can_sample()  # a running episode is not sampled
+    buf.end_episode()
+    assert buf.can_sample() and list(buf.ep_last[:3]) == [2, 2, 2]
+    buf.add(np.zeros(4), np.zeros(1), 0.0, np.zeros(4), False, True)
+    assert buf.ep_first[3] == 3 and buf.ep_last[3] == 3

@@ -47,10 +47,16 @@ class ReplayBuffer:
         self.ep_first[i], self.ep_last[i] = self.episode_first, -1
         self.total += 1
         if episode_done:
-            first = max(self.episode_first, self.total - self.capacity)
-            g = np.arange(first, self.total)
-            self.ep_last[g % self.capacity] = self.total - 1
-            self.episode_first = self.total
+            self.end_episode()
+
+    def end_episode(self) -> None:
+        """Close the running episode (also used when a run resumes from a checkpoint taken mid-episode)."""
+        if self.episode_first == self.total:
+            return
+        first = max(self.episode_first, self.total - self.capacity)
+        g = np.arange(first, self.total)
+        self.ep_last[g % self.capacity] = self.total - 1
+        self.episode_first = self.total
 
     def _sampleable(self) -> tuple[int, int]:
         """[lo, hi) global indices that may be sampled."""

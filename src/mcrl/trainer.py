@@ -84,9 +84,8 @@ def restore(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, dict]:
     return state, meta
 
 
-def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True, resume: bool = False,
-          stop_at: int | None = None) -> Path:
-    """Train; with `resume`, continue `run_dir` from its newest checkpoint. `stop_at` ends early (tests)."""
+def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True, resume: bool = False) -> Path:
+    """Train; with `resume`, continue `run_dir` from its newest checkpoint (or start it if it has none)."""
     env, spec, agent, buffer = _build(cfg)  # validates env and spaces before anything is written
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
     ckpt = None
@@ -110,6 +109,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
             raise MCRLError(f"checkpoint {ckpt} has no replay buffer (save_buffer=false): resuming would not "
                             "reproduce the run; start a new run instead")
         buffer.load_arrays(arrays)
+        buffer.end_episode()  # the final checkpoint can be mid-episode; the env restarts with a new one
         rng.bit_generator.state = meta["host_rng"]
         step, episode, eval_round = meta["step"], meta["episode"], meta["eval_round"]
         last_ckpt, interval, last_eval = step, meta["interval"], meta["last_eval"]
@@ -123,7 +123,6 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     act = jax.jit(agent.act)
     act_key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 0x5EED)
     t_start, steps_at_start = time.perf_counter(), step
-    end = cfg.total_steps if stop_at is None else min(stop_at, cfg.total_steps)
 
     def save_checkpoint():
         meta = {"episode": episode, "eval_round": eval_round, "host_rng": rng.bit_generator.state,
@@ -151,7 +150,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     flat = flatten_obs(obs)
     ep_return, ckpt_due = 0.0, False
     try:
-        while step < end:
+        while step < cfg.total_steps:
             if step < cfg.learning_starts:
                 action = rng.uniform(-1.0, 1.0, spec.act_dim).astype(np.float32)
             else:
@@ -200,8 +199,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
                 last_ckpt, ckpt_due = step, False
             if bar is not None:
                 bar.update(1)
-        if step >= cfg.total_steps:
-            save_checkpoint()
+        save_checkpoint()
             (run_dir / "done").write_text(json.dumps({"step": step, **last_eval}))
     finally:
         if bar is not None:
