@@ -200,7 +200,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
             if bar is not None:
                 bar.update(1)
         save_checkpoint()
-            (run_dir / "done").write_text(json.dumps({"step": step, **last_eval}))
+        (run_dir / "done").write_text(json.dumps({"step": step, **last_eval}))
     finally:
         if bar is not None:
             bar.close()
