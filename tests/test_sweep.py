@@ -112,7 +112,8 @@ def test_ray_backend_gives_the_same_runs(local_exp, tmp_path):
     shipped = ray_exp / "runs" / "a0.2-s1"
     assert (shipped / "checkpoints" / "latest").read_text().strip() == f"step_{STEPS:09d}"
     assert list(shipped.glob("events.out.tfevents.*"))
-    assert json.loads((ray_exp / "sweep.json").read_text())["runs"] == json.loads((exp / "sweep.json").read_text())["runs"]
+    runs = [json.loads((d / "sweep.json").read_text())["runs"] for d in (exp, ray_exp)]
+    assert runs[0] == runs[1]
 
 
 @pytest.mark.slow
@@ -193,7 +194,9 @@ def test_killed_worker_and_killed_sweep_resume_to_the_same_numbers(local_exp, tm
         # 1. SIGKILL one worker after its run's first checkpoint: the driver reports it and goes on
         _wait_for(lambda: list(exp.glob("runs/*/checkpoints/latest")), proc, "a first checkpoint")
         victim = exp.glob("runs/*/checkpoints/latest").__next__().parent.parent.name
-        pid = int(re.search(rf"start {re.escape(victim)} \(pid (\d+)\)", out.text()).group(1))
+        start_line = re.compile(rf"start {re.escape(victim)} \(pid (\d+)\)")
+        _wait_for(lambda: start_line.search(out.text()), proc, "the victim's start line")
+        pid = int(start_line.search(out.text()).group(1))
         os.kill(pid, signal.SIGKILL)
         _wait_for(lambda: f"FAILED {victim}" in out.text(), proc, "the driver to report the killed worker")
         assert not (exp / "runs" / victim / "done").exists()

@@ -209,4 +209,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Under `python -m`, this file runs as __main__; extra commands register into the importable mcrl.cli.
+    from mcrl.cli import main as _main
+
+    sys.exit(_main())

@@ -103,7 +103,7 @@ def _sweep(sub) -> None:
         if res.tracking_uri:
             from mcrl.tracking import ui_command
 
-            print(f"MLflow: {ui_command(res.tracking_uri)}")
+            print(f"MLflow (experiment {res.tracking_experiment}): {ui_command(res.tracking_uri)}")
         print(f"report: mcrl report {res.exp_dir}")
         if res.failed:
             print(f"mcrl: {len(res.failed)} run(s) failed ({', '.join(res.failed)}): fix the cause and re-run "

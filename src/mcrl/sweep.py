@@ -658,6 +658,7 @@ class SweepResult:
     skipped: list[str] = field(default_factory=list)  # already finished before
     failed: dict[str, str] = field(default_factory=dict)
     tracking_uri: str | None = None
+    tracking_experiment: str | None = None
 
     @property
     def ok(self) -> bool:
@@ -727,7 +728,7 @@ def _run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env:
                     _failed(drv, result, name, why)
             drv.poll(list(running))
     finally:
-        for proc, reader, *_ in running.values():  # interrupted: stop the runs (each keeps its checkpoints)
+        for proc, *_ in running.values():  # interrupted: stop the runs (each keeps its checkpoints)
             if proc.is_alive():
                 proc.terminate()
         for proc, reader, *_ in running.values():
@@ -757,6 +758,17 @@ def _patched_environ(env: dict[str, str]):
                 os.environ[k] = v
 
 
+def _ray_auth_env(address: str | None) -> None:
+    """Ray >= 2.59: `ray start --head` enables token authentication when a token exists, but
+    ray.init(address=...) sends the token only with RAY_AUTH_MODE=token, which Ray reads when it is
+    imported (a cluster without authentication accepts a client that sends one)."""
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address and address != "auto" and "RAY_AUTH_MODE" not in os.environ and "ray" not in sys.modules and (
+            os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+            or (Path.home() / ".ray" / "auth_token").is_file()):
+        os.environ["RAY_AUTH_MODE"] = "token"
+
+
 def _import_ray():
     try:
         import ray
@@ -777,12 +789,15 @@ def _start_ray(address: str | None, cpus: int):
         if address:
             ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
         else:
-            ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+            # address="local": a new instance even when `ray start` left one (or its stale address file) behind
+            ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+                     logging_level=logging.WARNING)
     except (ConnectionError, TimeoutError, RuntimeError, ValueError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         where = f"the Ray cluster at {address}" if address else "a local Ray instance"
         raise MCRLError(f"cannot connect to {where} ({type(e).__name__}: {first}): start the cluster with "
-                        "`ray start --head` or fix --address") from None
+                        "`ray start --head` or fix --address (a cluster with token authentication also needs "
+                        "its token: RAY_AUTH_TOKEN or ~/.ray/auth_token)") from None
     return ray, not address
 
 
@@ -965,6 +980,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
     if backend == "ray":
         if address:
             check_ray_address(address)
+        _ray_auth_env(address)
         _import_ray()
 
     # ---- start
@@ -986,10 +1002,11 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         (exp / "runs").mkdir(exist_ok=True)
         if tracker is not None:
             tracker.open(exp, sweep_id, plan.preset)
-            result.tracking_uri = tracker.uri
+            result.tracking_uri, result.tracking_experiment = tracker.uri, tracker.experiment_name
 
         drv = _Driver(plan.runs, exp, progress, out)
-        drv.line(f"experiment directory: {exp} ({len(plan.runs)} runs, backend {backend}, "
+        drv.line(f"experiment directory: {exp} ({len(plan.runs)} run{'s' if len(plan.runs) != 1 else ''}, "
+                 f"backend {backend}, "
                  f"{'up to ' + str(n_workers) + ' at a time, ' if backend == 'local' or workers else ''}"
                  f"{threads} thread(s) per run)")
         others = len(entries) - len(plan.runs)
@@ -1018,13 +1035,12 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
             if tracker is not None:  # in the background: the next runs start meanwhile
                 log_jobs.append(log_pool.submit(log, run))
 
-        log_pool = None
         log_jobs: list = []
         if tracker is not None:
             from concurrent.futures import ThreadPoolExecutor
 
             log_pool = ThreadPoolExecutor(1, thread_name_prefix="mcrl-mlflow")
-        if tracker is not None:  # finished earlier (maybe before --tracking was given): log what is missing
+            # runs finished earlier (maybe before --tracking was given): log those missing from the store
             for name in result.skipped:
                 if not tracker.is_logged(name):
                     on_finish(next(r for r in plan.runs if r.name == name), {})

@@ -40,6 +40,9 @@ def default_uri(exp: Path) -> str:
 
 
 def ui_command(uri: str) -> str:
+    """How to look at the store: the `mlflow ui` command of a local store, or the server's address."""
+    if uri.startswith(("http://", "https://")):
+        return f"open {uri}"
     return f"mlflow ui --backend-store-uri {uri}"
 
 
