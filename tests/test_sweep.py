@@ -316,3 +316,25 @@ def test_grid_file_plan_names_and_keys(tmp_path):
     assert first.config.hidden_sizes == (64, 64) and first.config.total_steps == 300
     assert [r.seed for r in plan.runs] == [3, 3, 3, 3, 5, 5, 5, 5]
     assert len({r.name for r in plan.runs}) == 8
+
+
+def test_mlflow_receives_the_runs_videos(local_exp, tmp_path):
+    import shutil
+
+    from mlflow import MlflowClient
+
+    from mcrl.config import Config
+    from mcrl.sweep import RunPlan
+    from mcrl.tracking import Tracker
+
+    exp, _ = local_exp
+    run_dir = tmp_path / "exp" / "runs" / "v"
+    shutil.copytree(exp / "runs" / RUN_NAMES[0], run_dir)
+    (run_dir / "videos").mkdir()
+    (run_dir / "videos" / "eval_step300.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(64))
+    tracker = Tracker.check(None, tmp_path / "exp")
+    tracker.open(tmp_path / "exp", "sweep-id", "fetchreach-sacmc")
+    cfg = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    rid = tracker.log_run(RunPlan("v", "alpha=0.2", cfg.seed, {}, cfg), run_dir)
+    client = MlflowClient(tracking_uri=tracker.uri)
+    assert [a.path for a in client.list_artifacts(rid, "videos")] == ["videos/eval_step300.mp4"]

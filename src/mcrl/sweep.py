@@ -48,6 +48,7 @@ import yaml
 
 from mcrl.config import Config, resolve_config
 from mcrl.errors import MCRLError
+from mcrl.tracking import patched_environ
 
 SWEEP_FILE_KEYS = ("preset", "grid", "set", "seeds")
 # Short names in configuration labels and run names.
@@ -684,7 +685,7 @@ def _run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env:
                 reader, writer = ctx.Pipe(duplex=False)
                 proc = ctx.Process(target=_local_worker, args=(spec, env, writer), name=f"mcrl-{run.name}",
                                    daemon=True)
-                with _patched_environ(env):  # the child's environment from its first instruction on
+                with patched_environ(env):  # the child's environment from its first instruction on
                     proc.start()
                 writer.close()
                 running[run.name] = (proc, reader, run, attempt, time.monotonic())
@@ -742,20 +743,6 @@ def _run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env:
 def _failed(drv: _Driver, result: SweepResult, name: str, why: str) -> None:
     result.failed[name] = why
     drv.line(f"{drv.tag()} FAILED {name}: {why}")
-
-
-@contextlib.contextmanager
-def _patched_environ(env: dict[str, str]):
-    old = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def _ray_auth_env(address: str | None) -> None:

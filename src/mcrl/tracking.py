@@ -58,11 +58,10 @@ def _import_mlflow():
 
 
 @contextlib.contextmanager
-def _no_retries():
-    """MLflow retries HTTP requests with backoff for minutes; a probe must answer in seconds."""
-    keys = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"}
-    old = {k: os.environ.get(k) for k in keys}
-    os.environ.update(keys)
+def patched_environ(env: dict[str, str]):
+    """Set environment variables for the duration of the block, then restore them."""
+    old = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
     try:
         yield
     finally:
@@ -71,6 +70,11 @@ def _no_retries():
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def _no_retries():
+    """MLflow retries HTTP requests with backoff for minutes; a probe must answer in seconds."""
+    return patched_environ({"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"})
 
 
 def _first_line(e: BaseException) -> str:
@@ -221,6 +225,8 @@ class Tracker:
             for f in ("config.json", "metrics.csv", "eval.csv"):
                 if (Path(run_dir) / f).is_file():
                     client.log_artifact(rid, str(Path(run_dir) / f))
+            for video in sorted((Path(run_dir) / "videos").glob("*.mp4")):  # from `--set video_every=N`
+                client.log_artifact(rid, str(video), artifact_path="videos")
             with tempfile.TemporaryDirectory(prefix="mcrl-plot-") as tmp:
                 try:
                     from mcrl.plots import plot_run
