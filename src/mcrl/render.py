@@ -34,11 +34,11 @@ def mc_timeline(cfg: Config, agent: Agent, state: TrainState, flat_obs: np.ndarr
     return np.asarray(kl, np.float64), np.asarray(r_mc, np.float64)
 
 
-def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int) -> dict:
-    """One deterministic episode, rendered, with its timeline series."""
+def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int, act=None) -> dict:
+    """One deterministic episode, rendered, with its timeline series (`act`: a jitted deterministic policy)."""
     from mcrl.video import render_episode
 
-    act = jax.jit(agent.act_deterministic)
+    act = act or jax.jit(agent.act_deterministic)
     policy_actions: list[np.ndarray] = []
 
     def policy(obs):
@@ -71,9 +71,10 @@ def render_policy(cfg: Config, agent: Agent, state: TrainState, out_path: Path, 
     check_renderer(cfg.env_id, **cfg.env_kwargs)
     env = make_render_env(cfg.env_id, width=width, height=height, **cfg.env_kwargs)
     frames, eps = [], []
+    act = jax.jit(agent.act_deterministic)  # compiled once for all episodes
     try:
         for i in range(episodes):
-            ep = record_episode(cfg, agent, state, env, episode_seed(cfg.seed, _RENDER_STREAM, seed_offset + i))
+            ep = record_episode(cfg, agent, state, env, episode_seed(cfg.seed, _RENDER_STREAM, seed_offset + i), act)
             frames.extend(compose_episode(ep["frames"], ep["series"], ep["success"] if ep["has_success"] else None))
             eps.append(ep)
     finally:
