@@ -73,15 +73,15 @@ def measure_env_step(preset: str, repeats: int = 5, steps: int = 500) -> dict:
     cfg = resolve_config(preset, {"buffer_size": 20_000})
     env, spec, agent, buffer = _build(cfg)
     state = agent.init(0)
-    act = jax.jit(agent.act)
     key = jax.random.PRNGKey(0)
+    act = jax.jit(lambda params, obs, t: agent.act(params, obs, jax.random.fold_in(key, t)))  # as the trainer
     obs, _ = env.reset(seed=0)
     flat = flatten_obs(obs)
     times, episode = [], 0
     for rep in range(repeats + 1):
         t = time.perf_counter()
         for i in range(steps):
-            a = np.asarray(act(state.actor, flat[None], jax.random.fold_in(key, i)))[0]
+            a = np.asarray(act(state.actor, flat[None], i))[0]
             nxt, r, term, trunc, _ = env.step(to_env_action(a, env, cfg.action_scale))
             nflat = flatten_obs(nxt)
             buffer.add(flat, a, r, nflat, term, term or trunc)

@@ -120,8 +120,9 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     evaluator = Evaluator(cfg, agent)
 
     update = jax.jit(agent.update, donate_argnums=0)
-    act = jax.jit(agent.act)
     act_key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 0x5EED)
+    # The key is folded inside the compiled call: outside, fold_in alone costs a dispatch (~0.15 ms) per step.
+    act = jax.jit(lambda params, obs, t: agent.act(params, obs, jax.random.fold_in(act_key, t)))
     t_start, steps_at_start = time.perf_counter(), step
 
     def save_checkpoint():
@@ -154,7 +155,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
             if step < cfg.learning_starts:
                 action = rng.uniform(-1.0, 1.0, spec.act_dim).astype(np.float32)
             else:
-                action = np.asarray(act(state.actor, flat[None], jax.random.fold_in(act_key, step)))[0]
+                action = np.asarray(act(state.actor, flat[None], step))[0]
             next_obs, reward, term, trunc, info = env.step(to_env_action(action, env, cfg.action_scale))
             next_flat = flatten_obs(next_obs)
             buffer.add(flat, action, reward, next_flat, term, term or trunc)
