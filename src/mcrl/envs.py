@@ -14,7 +14,8 @@ GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 _registered = False
 
 
-def _register() -> None:
+def register_envs() -> None:
+    """Register gymnasium-robotics' environments (once, quietly)."""
     global _registered
     if not _registered:
         import contextlib
@@ -41,7 +42,7 @@ class EnvSpec:
 
 
 def make_env(cfg: Config, render_mode: str | None = None) -> gym.Env:
-    _register()
+    register_envs()
     try:
         env = gym.make(cfg.env_id, render_mode=render_mode, **cfg.env_kwargs)
     except gym.error.Error as e:  # NameNotFound, VersionNotFound, ...
@@ -97,8 +98,8 @@ def to_env_action(action: np.ndarray, env: gym.Env, action_scale: float) -> np.n
 def success_of(info: dict) -> float | None:
     """Success flag the environment reports (`is_success` for Fetch, `success` for AntMaze), if any."""
     for k in ("is_success", "success"):
-        if k in info:
-            return float(info[k])
+        if k in info:  # a numpy scalar or a 1-element array, depending on the environment
+            return float(np.asarray(info[k], dtype=np.float64).reshape(-1)[0])
     return None
 
 

@@ -33,6 +33,7 @@ from typing import Any, Callable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
+from mcrl.envs import register_envs, success_of
 from mcrl.errors import MCRLError
 
 __all__ = [
@@ -193,16 +194,6 @@ def _one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}"[:130]
 
 
-def _register_robotics() -> None:
-    import gymnasium as gym
-
-    try:
-        import gymnasium_robotics
-    except ImportError:
-        return
-    gym.register_envs(gymnasium_robotics)
-
-
 def make_render_env(env_id: str, *, width: int | None = None, height: int | None = None, **kwargs: Any):
     """``gym.make(env_id, render_mode="rgb_array", ...)`` after configuring headless GL.
 
@@ -211,7 +202,7 @@ def make_render_env(env_id: str, *, width: int | None = None, height: int | None
     configure_headless_gl()
     import gymnasium as gym
 
-    _register_robotics()
+    register_envs()
     if width is not None:
         kwargs["width"] = int(width)
     if height is not None:
@@ -236,7 +227,7 @@ def check_renderer(env_id: str, **make_kwargs: Any) -> RenderCheck:
     try:
         import gymnasium as gym  # noqa: F401
 
-        _register_robotics()
+        register_envs()
     except Exception as exc:  # e.g. `import mujoco` failing with MUJOCO_GL=osmesa, no libOSMesa
         raise _render_failure(env_id, backend, "cannot import the environments", exc) from exc
     try:
@@ -276,13 +267,6 @@ def _stack_obs(obs_list: list) -> Any:
     if isinstance(first, Mapping):
         return {k: np.stack([np.asarray(o[k]) for o in obs_list]) for k in first}
     return np.stack([np.asarray(o) for o in obs_list])
-
-
-def _success_of(info: Mapping) -> float | None:
-    for key in ("is_success", "success"):
-        if key in info:
-            return float(np.asarray(info[key], dtype=np.float64).reshape(-1)[0])
-    return None
 
 
 def _as_rgb(frame: Any) -> np.ndarray:
@@ -337,7 +321,7 @@ def render_episode(
         observations.append(obs)
         actions.append(np.asarray(action, dtype=np.float32).reshape(-1))
         rewards.append(float(reward))
-        s = _success_of(info)
+        s = success_of(info)
         has_success = has_success or s is not None
         success.append(0.0 if s is None else s)
         if render:
