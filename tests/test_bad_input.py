@@ -32,6 +32,9 @@ def _run(args, tmp_path, capsys):
     (["train", "--env", "CartPole-v1", "--set", "her=false"], "Box action space"),
     (["train", "--set", "no_such_key=1"], "unknown config key"),
     (["train", "--set", "batch_size=abc"], "expected int"),
+    (["train", "--set", "mc_alpha=0.2", "--set", "mc_models=false"], "needs the MC models"),
+    (["train", "--set", "init=xavier"], "init="),
+    (["train", "--set", "mc_history=0"], "mc_history=0"),
 ])
 def test_bad_training_input(args, needle, tmp_path, capsys):
     rc, err, new = _run(args + ["--out-dir", str(tmp_path / "runs")], tmp_path, capsys)

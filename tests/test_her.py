@@ -65,7 +65,7 @@ def test_final_strategy_uses_the_last_achieved_goal():
 def test_relabelled_transitions_carry_the_mc_reward():
     # with mc_state=full the MC models see the (relabelled) goal, so relabelling changes their input
     cfg = resolve_config("fetchreach-sacmc", {"mc_state": "full", "hidden_sizes": [32], "mc_hidden_sizes": [32],
-                                              "mc_history": 1024})
+                                              "mc_history": 4})
     env, spec, buf = _filled_buffer(cfg)
     agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
     state = agent.init(0)

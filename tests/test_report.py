@@ -13,7 +13,9 @@ from matplotlib.image import imread
 from mcrl.errors import MCRLError
 from mcrl.logger import EVAL_COLUMNS, METRIC_COLUMNS
 from mcrl.plots import plot_run
-from mcrl.report import THESIS_RESULTS, thesis_experiment, write_report
+from mcrl.cli import main
+from mcrl.report import MIN_SEEDS_FOR_VERDICT, THESIS_RESULTS, load_experiment, thesis_experiment, write_report
+from mcrl.stats import probability_of_improvement
 
 TOTAL = 1000
 # Final eval per seed. SAC: success 0.2/0.4/0.6 (mean 0.4, sample var 0.04), return -40/-30/-20 (mean -30).
@@ -30,10 +32,17 @@ def _write_csv(path: Path, columns: tuple[str, ...], rows: list[dict]) -> None:
 
 
 def _write_run(run_dir: Path, alpha: float, seed: int, final: tuple[float, float], upto: int = TOTAL,
-               done: bool = True) -> None:
+               done: bool = True, config: dict | None = None, final_eval: dict | None = None,
+               peer: dict | None = None) -> None:
+    """A fake run directory; ``config`` adds config.json keys, ``final_eval``/``peer`` write those files."""
     run_dir.mkdir(parents=True)
     (run_dir / "config.json").write_text(json.dumps(
-        {"preset": "fetchpush-test", "mc_alpha": alpha, "seed": seed, "total_steps": TOTAL, "env_id": "FetchPush-v4"}))
+        {"preset": "fetchpush-test", "mc_alpha": alpha, "seed": seed, "total_steps": TOTAL, "env_id": "FetchPush-v4",
+         **(config or {})}))
+    if final_eval is not None:
+        (run_dir / "final_eval.json").write_text(json.dumps(final_eval))
+    if peer is not None:
+        (run_dir / "peer.json").write_text(json.dumps(peer))
     evals = [{"step": s, "success_rate": final[0] * s / TOTAL, "mean_return": -50 + (final[1] + 50) * s / TOTAL,
               "episodes": 10} for s in range(0, upto + 1, 250)]
     _write_csv(run_dir / "eval.csv", EVAL_COLUMNS, evals)
@@ -182,3 +191,154 @@ def test_plot_run_writes_a_real_png(experiment: Path, tmp_path: Path) -> None:
     assert plot_run(experiment / "runs" / "a0-s0") == experiment / "runs" / "a0-s0" / "curves.png"
     with pytest.raises(MCRLError):
         plot_run(tmp_path / "nope")
+
+
+# ------------------------------------------------------------------ verdicts need enough seeds
+
+VERDICT_WORDS = ("better", "worse", "supported", "contradicted")
+
+
+def _experiment(exp: Path, finals: dict[float, list[tuple[float, float]]], preset: str = "fetchpush-test",
+                **run_kwargs) -> Path:
+    """An experiment of finished runs: {mc_alpha: [(final success, final return) per seed]}."""
+    runs = []
+    for alpha, per_seed in finals.items():
+        for seed, final in enumerate(per_seed):
+            name = f"a{alpha:g}-s{seed}"
+            _write_run(exp / "runs" / name, alpha, seed, final, **run_kwargs)
+            runs.append({"name": name, "config_key": f"alpha={alpha:g}", "seed": seed, "overrides": {"mc_alpha": alpha}})
+    (exp / "sweep.json").write_text(json.dumps({"preset": preset, "runs": runs}))
+    return exp
+
+
+@pytest.mark.parametrize("n_seeds", [1, 2])
+def test_no_verdict_from_too_few_seeds(tmp_path: Path, n_seeds: int) -> None:
+    sac = [(0.9, -10.0), (0.8, -12.0)][:n_seeds]
+    mc = [(0.1, -40.0), (0.2, -38.0)][:n_seeds]
+    exp = _experiment(tmp_path / "exp", {0.0: sac, 0.2: mc})
+    # Without the rule the bootstrap would read "worse than SAC": every resample gives P = 0.
+    assert probability_of_improvement([s for s, _ in mc], [s for s, _ in sac]) == (0.0, 0.0, 0.0)
+    md = write_report(exp, tmp_path / "rep").read_text()
+    for line in md.splitlines():
+        assert not any(w in line.lower() for w in VERDICT_WORDS), line
+    few = f"too few seeds for a verdict (n={n_seeds} vs {n_seeds}, need >= {MIN_SEEDS_FOR_VERDICT})"
+    poi = _row(_section(md, "IQM and probability of improvement"), "`alpha=0.2` > `alpha=0`")
+    assert poi[3] == few and poi[5] == few
+    thesis = _section(md, "Comparison with the thesis (FetchPush)")
+    assert f"P(`alpha=0.2` > `alpha=0`) = 0.000 [0.000, 0.000]; {few}." in thesis
+    assert f"SAC (`alpha=0`) success rate: too few seeds for a verdict (n={n_seeds}, need >= 3)" in thesis
+    assert _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")[4] == few
+    assert f"at least {MIN_SEEDS_FOR_VERDICT} finished seeds" in md  # the rule is stated in the overview
+
+
+def test_clear_difference_with_enough_seeds_gives_a_verdict(tmp_path: Path) -> None:
+    sac = [(0.1, -45.0), (0.2, -40.0), (0.3, -35.0)]
+    mc = [(0.7, -20.0), (0.8, -15.0), (0.9, -10.0)]
+    md = write_report(_experiment(tmp_path / "exp", {0.0: sac, 0.2: mc}), tmp_path / "rep").read_text()
+    poi = _row(_section(md, "IQM and probability of improvement"), "`alpha=0.2` > `alpha=0`")
+    assert poi[2].startswith("1.000 [1.000, 1.000]") and poi[3] == "better than SAC (CI above 0.5)"
+    assert poi[5] == "better than SAC (CI above 0.5)"
+    assert "so the claim is supported by our runs" in md and "too few seeds" not in md.split("## Learning")[1]
+    # MDE = (z_.975 + z_.8) * sqrt(0.01/3 + 0.01/3); seeds to detect 0.6: 2.8016^2 * 0.02 / 0.36 -> 2
+    mde = _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")
+    assert mde[1:] == ["3 / 3", "0.100 / 0.100", "0.600", "0.229", "2"]
+
+
+# ------------------------------------------------------------------ final_eval.json, per-seed table
+
+
+def test_final_numbers_prefer_final_eval_json(tmp_path: Path) -> None:
+    exp = tmp_path / "exp"
+    fe = {0: {"step": TOTAL, "success_rate": 0.5, "mean_return": -25.0, "episodes": 100},
+          1: {"step": TOTAL, "success_rate": 0.7, "mean_return": -15.0, "episodes": 100}}
+    runs = []
+    for seed in range(3):  # seed 2 has no final_eval.json: its last eval.csv row (10 episodes) is used
+        _write_run(exp / "runs" / f"s{seed}", 0.0, seed, (0.1, -45.0), final_eval=fe.get(seed))
+        runs.append({"name": f"s{seed}", "config_key": "alpha=0", "seed": seed})
+    # unfinished (no done): its final_eval.json does not make it finished
+    _write_run(exp / "runs" / "s3", 0.0, 3, (0.9, -5.0), done=False, final_eval=fe[0])
+    runs.append({"name": "s3", "config_key": "alpha=0", "seed": 3})
+    (exp / "sweep.json").write_text(json.dumps({"preset": "custom", "runs": runs}))
+    loaded = load_experiment(exp)
+    assert [r.final for r in loaded.runs] == [(0.5, -25.0), (0.7, -15.0), (0.1, -45.0), None]
+    assert [r.final_source for r in loaded.runs[:3]] == [("final_eval.json", 100)] * 2 + [("eval.csv", 10)]
+
+    md = write_report(exp, tmp_path / "rep").read_text()
+    final = _row(_section(md, "Final performance per configuration"), "`alpha=0`")
+    assert final[2] == "3 / 4" and final[4].startswith("0.433 [") and final[6].startswith("-28.33 [")
+    assert final[7] == "final_eval.json, 100 episodes (2); last eval.csv row, 10 episodes (1)"
+    per_seed = _section(md, "Final performance per seed")
+    assert _row(per_seed, "`alpha=0` | 0")[2:] == ["`s0`", "0.500", "-25.00", "final_eval.json, 100 episodes"]
+    assert _row(per_seed, "`alpha=0` | 2")[2:] == ["`s2`", "0.100", "-45.00", "last eval.csv row, 10 episodes"]
+    assert _row(per_seed, "`alpha=0` | 3")[2:] == ["`s3`", "unfinished", "-", "-"]
+
+
+# ------------------------------------------------------------------ grouping, reference arms, provenance
+
+
+def test_groups_differ_by_every_setting(tmp_path: Path) -> None:
+    exp = tmp_path / "exp"
+    runs = []
+    variants = {"sac": (0.0, {}), "mc": (0.2, {}), "mc-full": (0.2, {"mc_reduction": "batch", "mc_state": "full"})}
+    for seed in range(2):
+        for tag, (alpha, extra) in variants.items():
+            name = f"{tag}-s{seed}"
+            # out_dir and video_every only place or record a run: they must not split a configuration
+            _write_run(exp / "runs" / name, alpha, seed, (0.5, -25.0),
+                       config={**extra, "out_dir": f"/elsewhere/{seed}", "video_every": seed * 100})
+            # sweep.json's labels do not tell mc from mc-full apart
+            runs.append({"name": name, "config_key": f"alpha={alpha:g}", "seed": seed})
+    # never started: they join by sweep label, or by their overrides where the label spans two groups
+    runs.append({"name": "sac-s2", "config_key": "alpha=0", "seed": 2})
+    runs.append({"name": "mc-full-s2", "config_key": "alpha=0.2", "seed": 2,
+                 "overrides": {"mc_alpha": 0.2, "mc_reduction": "batch", "mc_state": "full", "seed": 2}})
+    (exp / "sweep.json").write_text(json.dumps({"preset": "custom", "runs": runs}))
+    groups = {g.key: [r.name for r in g.runs] for g in load_experiment(exp).configs}
+    assert groups == {
+        "mc_alpha=0, mc_reduction=transition, mc_state=observation": ["sac-s0", "sac-s1", "sac-s2"],
+        "mc_alpha=0.2, mc_reduction=batch, mc_state=full": ["mc-full-s0", "mc-full-s1", "mc-full-s2"],
+        "mc_alpha=0.2, mc_reduction=transition, mc_state=observation": ["mc-s0", "mc-s1"],
+    }
+
+
+def test_reference_arms_and_provenance(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    exp = _experiment(tmp_path / "exp", {0.0: FINALS["alpha=0"], 0.2: FINALS["alpha=0.2"]})
+    sb3 = {"system": "stable-baselines3", "version": "2.9.2"}
+    # Same config as mcrl's SAC runs: one peer run inside EXP/runs (not in sweep.json), two elsewhere.
+    _write_run(exp / "runs" / "sb3-s0", 0.0, 0, (0.5, -25.0), peer=sb3, done=False,
+               final_eval={"step": TOTAL, "success_rate": 0.55, "mean_return": -24.0, "episodes": 100})
+    peers = tmp_path / "peers"
+    for seed in (1, 2):
+        _write_run(peers / f"sb3-s{seed}", 0.0, seed, (0.5, -25.0), peer=sb3)
+    (exp / "provenance.json").write_text(json.dumps(
+        {"commit": "0123abc", "machine": "1x H100", "command": "mcrl sweep --file push.yaml --exp EXP",
+         "rerun_one_seed": "mcrl train --preset fetchpush-sac --seed 3"}))
+
+    loaded = load_experiment(exp, extra_runs=[peers])
+    assert [(g.key, g.peer, len(g.finished)) for g in loaded.configs] == [
+        ("alpha=0", None, 3), ("alpha=0.2", None, 3), ("stable-baselines3 SAC", "stable-baselines3 2.9.2", 3)]
+
+    rc = main(["report", str(exp), "--with", str(peers), "--out", str(tmp_path / "rep")])
+    assert rc == 0, capsys.readouterr().err
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert md.index("**Provenance**") < md.index("## Learning curves")
+    for text in ("code commit: `0123abc`", "machine: `1x H100`", "command: `mcrl sweep --file push.yaml --exp EXP`",
+                 "re-run one seed: `mcrl train --preset fetchpush-sac --seed 3`"):
+        assert text in md
+    assert "Dashed: reference arms" in md
+    final = _row(_section(md, "Final performance per configuration"), "`stable-baselines3 SAC` (reference)")
+    assert final[2] == "3 / 3" and final[4].startswith("0.517 [")  # (0.55 + 0.5 + 0.5) / 3
+    assert _row(_section(md, "Final performance per configuration"), "`alpha=0`")[2] == "3 / 3"  # not merged
+    per_seed = _section(md, "Final performance per seed")
+    assert _row(per_seed, "`stable-baselines3 SAC` (reference) | 0")[2:4] == ["`sb3-s0`", "0.550"]
+    assert _row(per_seed, "`stable-baselines3 SAC` (reference) | 2")[2] == "`peers/sb3-s2`"
+    assert _row(_section(md, "IQM and probability of improvement"), "`alpha=0` > `stable-baselines3 SAC`")
+    assert _row(_section(md, "Comparison with the thesis (FetchPush)"), "SAC, reference (`stable-baselines3 SAC`)")
+
+
+def test_with_a_missing_directory_is_one_line(tmp_path: Path, experiment: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["report", str(experiment), "--with", str(tmp_path / "nope")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "--with" in err and "nope" in err
+    assert not (experiment / "report").exists()

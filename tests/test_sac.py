@@ -48,9 +48,12 @@ def test_checkpoint_holds_everything_and_no_pickle(tmp_path, small):
     ck = checkpoint.find(run)
     with np.load(ck / "state.npz", allow_pickle=False) as f:
         keys = set(f.files)
-    for part in (".actor", ".critic", ".critic_target", ".actor_opt", ".mc", ".mc_opt", ".norm.ring", ".key",
+    for part in (".actor", ".critic", ".critic_target", ".actor_opt", ".mc", ".mc_opt", ".key",
                  ".log_ent_coef"):
         assert any(k.startswith(part) for k in keys), part
+    with np.load(ck / "normaliser.npz", allow_pickle=False) as f:
+        assert {"ring", "ptr", "count", "c3_index", "c3_count"} <= set(f.files)
+        assert int(f["count"]) == int(f["c3_count"].sum()) > 0
     assert (ck / "buffer.npz").is_file()
     meta = checkpoint.load_meta(ck)
     assert meta["step"] == 300 and "host_rng" in meta

@@ -106,3 +106,30 @@ def test_stratified_ci_coverage(backend: str) -> None:
     covered = sum(lo <= 0.0 <= hi for _, lo, hi in
                   (stats.stratified_iqm_ci({"x": rng.normal(size=20)}, n_boot=300, seed=i)["x"] for i in range(60)))
     assert covered >= 50
+
+
+def test_minimum_detectable_difference_hand_computed() -> None:
+    z = 1.959964 + 0.841621  # z_0.975 + z_0.8
+    x, y = [0.2, 0.4, 0.6], [0.6, 0.8, 1.0]  # sample variances 0.04 each
+    assert stats.minimum_detectable_difference(x, y) == pytest.approx(z * np.sqrt(0.04 / 3 + 0.04 / 3), rel=1e-5)
+    # unequal sizes and spreads (Welch): sqrt(s1^2/n1 + s2^2/n2)
+    a, b = np.array([1.0, 2.0, 3.0, 4.0]), np.array([0.0, 0.0, 6.0])
+    expected = z * np.sqrt(a.var(ddof=1) / 4 + b.var(ddof=1) / 3)
+    assert stats.minimum_detectable_difference(a, b) == pytest.approx(expected, rel=1e-5)
+    # other alpha and power
+    assert stats.minimum_detectable_difference(x, y, alpha=0.01, power=0.9) == pytest.approx(
+        (2.575829 + 1.281552) * np.sqrt(0.08 / 3), rel=1e-5)
+    assert np.isnan(stats.minimum_detectable_difference([0.5], [0.1, 0.2]))  # no variance from one seed
+    assert stats.minimum_detectable_difference([1.0, 1.0], [0.0, 0.0]) == 0.0
+
+
+def test_seeds_to_detect() -> None:
+    x, y = [0.2, 0.4, 0.6], [0.6, 0.8, 1.0]
+    # n = z^2 (0.04 + 0.04) / 0.4^2 = 3.92 -> 4, and the MDE with 4 seeds each is just below 0.4
+    assert stats.seeds_to_detect(x, y, 0.4) == 4
+    z = 1.959964 + 0.841621
+    assert z * np.sqrt(0.08 / 4) < 0.4 < z * np.sqrt(0.08 / 3)
+    assert stats.seeds_to_detect(x, y, -0.4) == 4  # the sign does not matter
+    assert stats.seeds_to_detect(x, y, 0.0) is None
+    assert stats.seeds_to_detect([1.0, 1.0], [0.0, 0.0], 0.5) == 2  # no spread: the minimum
+    assert stats.seeds_to_detect([1.0], [0.0, 0.5], 0.5) is None

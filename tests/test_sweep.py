@@ -20,7 +20,7 @@ import pytest
 from mcrl.cli import main
 
 TINY = {"hidden_sizes": "[64,64]", "mc_hidden_sizes": "[64,64]", "batch_size": 64, "buffer_size": 20000,
-        "mc_history": 4096, "eval_every": 150, "eval_episodes": 2, "log_every": 100, "learning_starts": 100,
+        "eval_every": 150, "eval_episodes": 2, "log_every": 100, "learning_starts": 100,
         "checkpoint_every": 100}
 STEPS = 300
 # metrics.csv columns that depend on the learning (not on wall-clock time)

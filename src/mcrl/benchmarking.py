@@ -35,7 +35,8 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
                    full_history: bool = False) -> dict:
     """ms per jitted gradient step (median over `repeats` blocks of `calls`) and its GFLOP.
 
-    With `full_history`, the normaliser starts full (`mc_history` values), as late in a long run.
+    With `full_history`, the normaliser starts as late in a run: a full window, or `total_steps` steps' worth
+    of values for the whole-run history.
     """
     cfg = resolve_config(preset, {"buffer_size": 20_000, **(overrides or {})})
     env, spec, agent, buffer = _build(cfg)
@@ -51,8 +52,12 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
     batches = [Batch(b["obs"], b["action"], b["reward"], b["next_obs"], b["terminated"]) for b in batches]
     state = agent.init(0)
     if full_history and state.norm is not None:
-        values = rng.lognormal(2.0, 1.5, cfg.mc_history).astype(np.float32)
-        state = state._replace(norm=normaliser.push(state.norm, values))
+        n = cfg.mc_history_values or cfg.total_steps * cfg.mc_values_per_step
+        values = rng.lognormal(2.0, 1.5, n).astype(np.float32)
+        if cfg.mc_history_values is None:
+            state = state._replace(norm=normaliser.from_values(values, None))
+        else:
+            state = state._replace(norm=normaliser.push(state.norm, values))
     update = jax.jit(agent.update, donate_argnums=0)
     gflop = _flops(jax.jit(agent.update).lower(state, batches[0]).compile()) / 1e9
     for i in range(10):

@@ -1,10 +1,12 @@
 """Checkpoints: plain .npz arrays plus JSON, never pickle, written atomically.
 
 A checkpoint is a directory `checkpoints/step_<N>/` holding `state.npz` (every leaf of the train
-state, keyed by its pytree path), `buffer.npz` (the replay buffer, optional) and `meta.json` (step
-counters, the host RNG state, the config). It is written under a temporary name and renamed into place;
-`checkpoints/latest` is then replaced atomically, so a kill at any moment leaves the previous checkpoint
-usable. Loading uses `numpy.load(allow_pickle=False)`: it runs no code.
+state, keyed by its pytree path), `normaliser.npz` (the MC normaliser's history, packed), `buffer.npz`
+(the replay buffer, optional) and `meta.json` (step counters, the host RNG state, the config). Every
+file is fsynced; the directory is written under a temporary name and renamed into place, then
+`checkpoints/latest` is replaced atomically. `find` falls back to the newest complete checkpoint when
+`latest` is missing or dangling, so a kill at any moment leaves an older checkpoint usable. Loading uses
+`numpy.load(allow_pickle=False)`: it runs no code.
 """
 from __future__ import annotations
 
@@ -20,19 +22,13 @@ import numpy as np
 
 from mcrl.errors import MCRLError
 
-# The normaliser's histograms are derived from its ring buffer; they are rebuilt on load, not stored.
-_DERIVED = ("c1", "c2", "c3")
+_COMPLETE = ("state.npz", "meta.json")  # a checkpoint directory without these is not usable
+_LEGACY = ".norm."  # mcrl 0.1 kept the normaliser inside state.npz
 
 
 def _flatten(tree) -> dict[str, np.ndarray]:
-    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
-    out = {}
-    for path, leaf in leaves:
-        key = jax.tree_util.keystr(path)
-        if any(key.endswith(f".{d}") for d in _DERIVED):
-            continue
-        out[key] = np.asarray(leaf)
-    return out
+    return {jax.tree_util.keystr(path): np.asarray(leaf)
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
 def _fsync_dir(path: Path) -> None:
@@ -50,7 +46,16 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
         os.fsync(f.fileno())
 
 
-def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: dict | None, keep: int) -> Path:
+def _write_text(path: Path, text: str) -> None:
+    with open(path, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: dict | None, keep: int,
+         extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
+    """Write `state` (a pytree), `extra` arrays (one `<name>.npz` each), the buffer and `meta` as step `step`."""
     ckpt_root = Path(run_dir) / "checkpoints"
     ckpt_root.mkdir(parents=True, exist_ok=True)
     final = ckpt_root / f"step_{step:09d}"
@@ -58,12 +63,20 @@ def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: d
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     _write_npz(tmp / "state.npz", _flatten(jax.device_get(state)))
+    for name, arrays in (extra or {}).items():
+        _write_npz(tmp / f"{name}.npz", arrays)
     if buffer_arrays is not None:
         _write_npz(tmp / "buffer.npz", buffer_arrays)
-    (tmp / "meta.json").write_text(json.dumps({**meta, "step": step, "has_buffer": buffer_arrays is not None}))
+    _write_text(tmp / "meta.json", json.dumps({**meta, "step": step, "has_buffer": buffer_arrays is not None}))
     _fsync_dir(tmp)
-    shutil.rmtree(final, ignore_errors=True)
-    os.rename(tmp, final)
+    if final.exists():  # the same step saved again (a resumed run): move the old one aside, drop it after
+        old = ckpt_root / f".old-step_{step:09d}"
+        shutil.rmtree(old, ignore_errors=True)
+        os.rename(final, old)
+        os.rename(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(tmp, final)
     latest_tmp = ckpt_root / ".latest.tmp"
     latest_tmp.write_text(final.name)
     os.replace(latest_tmp, ckpt_root / "latest")
@@ -83,9 +96,19 @@ def find(run_dir: Path, step: int | None = None) -> Path:
             raise MCRLError(f"no checkpoint at step {step} in {run_dir}: available: {', '.join(have) or 'none'}")
         return path
     latest = ckpt_root / "latest"
-    if not latest.is_file():
-        raise MCRLError(f"{run_dir} has no checkpoint: train it (longer than checkpoint_every steps) first")
-    return ckpt_root / latest.read_text().strip()
+    if latest.is_file():
+        path = ckpt_root / latest.read_text().strip()
+        if is_complete(path):
+            return path
+    # `latest` missing or dangling (a kill between two renames): the newest complete checkpoint instead
+    for path in sorted(ckpt_root.glob("step_*"), reverse=True):
+        if is_complete(path):
+            return path
+    raise MCRLError(f"{run_dir} has no checkpoint: train it (longer than checkpoint_every steps) first")
+
+
+def is_complete(path: Path) -> bool:
+    return path.is_dir() and all((path / f).is_file() for f in _COMPLETE)
 
 
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
@@ -108,13 +131,12 @@ def load_meta(ckpt: Path) -> dict[str, Any]:
 def restore_state(ckpt: Path, template):
     """Fill `template` (a freshly initialised state of the same config) with the checkpoint's arrays."""
     arrays = _load_npz(ckpt / "state.npz")
+    for key in [k for k in arrays if k.startswith(_LEGACY)]:
+        del arrays[key]  # mcrl 0.1's in-state normaliser: read through load_extra's fallback, not here
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     new_leaves = []
     for path, leaf in leaves:
         key = jax.tree_util.keystr(path)
-        if any(key.endswith(f".{d}") for d in _DERIVED):
-            new_leaves.append(leaf)
-            continue
         if key not in arrays:
             raise MCRLError(f"checkpoint {ckpt} lacks {key}: it was written by a different config "
                             "(e.g. with/without MC models); resume with the run's own config.json")
@@ -127,6 +149,20 @@ def restore_state(ckpt: Path, template):
         raise MCRLError(f"checkpoint {ckpt} has arrays this config does not ({sorted(arrays)[:3]}...): "
                         "resume with the run's own config.json")
     return jax.tree_util.tree_unflatten(treedef, [jax.numpy.asarray(x) for x in new_leaves])
+
+
+def load_extra(ckpt: Path, name: str) -> dict[str, np.ndarray] | None:
+    """The arrays `save` wrote as `extra[name]`, or None if the checkpoint has none."""
+    path = ckpt / f"{name}.npz"
+    return _load_npz(path) if path.is_file() else None
+
+
+def legacy_normaliser(ckpt: Path) -> dict[str, np.ndarray] | None:
+    """The values of an mcrl 0.1 checkpoint's in-state normaliser ring (`.norm.ring` up to `.norm.count`)."""
+    arrays = _load_npz(ckpt / "state.npz")
+    if _LEGACY + "ring" not in arrays:
+        return None
+    return {"values": arrays[_LEGACY + "ring"][: int(arrays[_LEGACY + "count"])]}
 
 
 def load_buffer_arrays(ckpt: Path) -> dict[str, np.ndarray] | None:

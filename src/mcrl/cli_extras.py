@@ -1,9 +1,14 @@
-"""Subcommands beyond training: plot, report, render, sweep."""
+"""Subcommands beyond training: plot, report, render, sweep.
+
+Each checks the packages it needs first (:mod:`mcrl.extras`): a missing one is a one-line error
+naming the install command, before anything is written.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
 from mcrl.cli import _EXTRA_COMMANDS
+from mcrl.extras import PLOT_MODULES, RENDER_MODULES, REPORT_MODULES, require_all, require_installed
 
 
 def _plot(sub) -> None:
@@ -12,6 +17,7 @@ def _plot(sub) -> None:
     p.add_argument("--out", help="PNG path (default RUN_DIR/curves.png)")
 
     def run(args) -> int:
+        require_all(PLOT_MODULES, None, "mcrl plot")
         from mcrl.plots import plot_run
 
         print(f"wrote {plot_run(args.run_dir, args.out)}")
@@ -25,11 +31,15 @@ def _report(sub) -> None:
     p.add_argument("experiment_dir")
     p.add_argument("--format", choices=("md", "html"), default="md")
     p.add_argument("--out", help="output directory (default EXPERIMENT_DIR/report)")
+    p.add_argument("--with", dest="with_dirs", action="append", metavar="DIR", default=[],
+                   help="more runs to include (repeatable): another experiment directory, a run directory, or a "
+                   "directory of run directories, e.g. reference arms with a peer.json")
 
     def run(args) -> int:
+        require_all(REPORT_MODULES, None, "mcrl report")
         from mcrl.report import write_report
 
-        print(f"wrote {write_report(args.experiment_dir, args.out, fmt=args.format)}")
+        print(f"wrote {write_report(args.experiment_dir, args.out, fmt=args.format, extra_runs=args.with_dirs)}")
         return 0
 
     p.set_defaults(func=run)
@@ -64,6 +74,13 @@ def _sweep(sub) -> None:
 
     def run(args) -> int:
         import sys
+
+        if not args.dry_run:  # a dry run only plans; the sweep may run elsewhere
+            # Looked up, not imported: Ray must be imported after `mcrl sweep` sets its auth environment.
+            if args.backend == "ray":
+                require_installed("ray", "sweep", "mcrl sweep --backend ray")
+            if args.tracking or args.tracking_uri:
+                require_installed("mlflow", "sweep", "mcrl sweep --tracking")
 
         from mcrl.cli import DEFAULT_PRESET
         from mcrl.config import parse_set
@@ -127,6 +144,7 @@ def _render(sub) -> None:
     p.add_argument("--fps", type=float, default=25.0)
 
     def run(args) -> int:
+        require_all(RENDER_MODULES + (("imageio_ffmpeg",) if args.format == "mp4" else ()), None, "mcrl render")
         from mcrl.render import render_run
 
         path = render_run(args.run_dir, episodes=args.episodes, fmt=args.format, checkpoint_step=args.checkpoint,

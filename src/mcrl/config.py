@@ -34,6 +34,7 @@ class Config:
     learning_starts: int = 100  # random-action warm-up steps (stable-baselines3's default)
     ent_coef_init: float = 1.0  # 'auto' entropy coefficient, initial value (stable-baselines3's default)
     target_entropy: float | None = None  # None = -|A|
+    init: str = "torch"  # torch: weights and biases ~ U(+-1/sqrt(fan_in)) like torch's Linear | flax: LeCun normal, zero bias
     # --- HER ---
     her: bool | None = None  # None = on for goal-conditioned Dict environments
     her_strategy: str = "future"  # future | final | episode
@@ -45,7 +46,7 @@ class Config:
     mc_hidden_sizes: tuple[int, ...] = (256, 256, 256, 256, 256)
     mc_state: str = "observation"  # observation | full (observation + achieved_goal + desired_goal)
     mc_reduction: str = "transition"  # transition (thesis text) | batch (thesis code: one batch-mean KL)
-    mc_history: int = 400_000  # raw KL values kept by the normaliser
+    mc_history: int | None = None  # gradient steps of KL values the normaliser keeps; None = the whole run
     min_percentile: float = 0.0
     max_percentile: float = 94.0
     mc_reward_low: float = -1.0
@@ -53,6 +54,7 @@ class Config:
     # --- evaluation, logging, checkpoints ---
     eval_every: int = 2_500
     eval_episodes: int = 10
+    final_eval_episodes: int | None = None  # episodes of the evaluation at the end (None = eval_episodes)
     log_every: int = 500
     checkpoint_every: int = 10_000  # env steps; a checkpoint is written at the next episode end
     keep_checkpoints: int = 2
@@ -65,6 +67,20 @@ class Config:
     @property
     def use_mc_models(self) -> bool:
         return self.mc_alpha > 0 if self.mc_models is None else bool(self.mc_models)
+
+    @property
+    def mc_values_per_step(self) -> int:
+        """KL values one gradient step adds to the normaliser's history."""
+        return 1 if self.mc_reduction == "batch" else self.batch_size
+
+    @property
+    def mc_history_values(self) -> int | None:
+        """Capacity of the normaliser's window in KL values; None = every value of the run."""
+        return None if self.mc_history is None else self.mc_history * self.mc_values_per_step
+
+    @property
+    def n_final_eval_episodes(self) -> int:
+        return self.eval_episodes if self.final_eval_episodes is None else self.final_eval_episodes
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -81,16 +97,33 @@ class Config:
         validate(cfg)
         return cfg
 
+    @classmethod
+    def from_run_json(cls, d: dict[str, Any]) -> "Config":
+        """A run directory's config.json, including those written before `init` existed (mcrl 0.1).
+
+        Those runs used Flax's initialisation and counted `mc_history` in KL values (a window); they are
+        read with init=flax and the same window in gradient steps, so they can be evaluated and rendered.
+        """
+        d = dict(d)
+        if "init" not in d:
+            d["init"] = "flax"
+            if d.get("mc_history") is not None:
+                per_step = 1 if d.get("mc_reduction") == "batch" else int(d.get("batch_size", 256))
+                d["mc_history"] = max(1, int(d["mc_history"]) // per_step)
+        return cls.from_dict(d)
+
 
 _FETCHPUSH = dict(env_id="FetchPush-v4", total_steps=150_000, learning_rate=3e-4, buffer_size=1_000_000,
                   batch_size=256, tau=0.005, gamma=0.99, her=True, mc_lr=3e-4, min_percentile=0.0,
                   max_percentile=94.0, mc_reward_low=-1.0, mc_reward_high=0.0, eval_every=5_000,
-                  log_every=1_000)
-_ANTMAZE = dict(env_id="AntMaze_UMazeDense-v5", total_steps=400_000, learning_rate=4e-4, buffer_size=1_000_000,
+                  log_every=1_000, final_eval_episodes=100)
+# The thesis' framework ran a 27-d ant observation (no contact forces) with actions scaled by 0.4.
+_ANTMAZE = dict(env_id="AntMaze_UMazeDense-v5", env_kwargs={"include_cfrc_ext_in_observation": False},
+                action_scale=0.4, total_steps=400_000, learning_rate=4e-4, buffer_size=1_000_000,
                 batch_size=2048, tau=0.05, gamma=0.95, her=True, mc_lr=4e-4, min_percentile=0.0,
                 max_percentile=98.0, mc_reward_low=0.0, mc_reward_high=1.0, eval_every=10_000,
-                eval_episodes=10, log_every=2_000)
-_FETCHREACH = dict(env_id="FetchReach-v4", total_steps=7_000, her=True, mc_lr=3e-4, max_percentile=94.0,
+                eval_episodes=10, log_every=2_000, final_eval_episodes=100)
+_FETCHREACH = dict(env_id="FetchReach-v4", total_steps=9_000, her=True, mc_lr=3e-4, max_percentile=94.0,
                    mc_reward_low=-1.0, mc_reward_high=0.0, eval_every=1_000, log_every=250)
 
 # name -> (description, overrides of the Config defaults)
@@ -107,8 +140,8 @@ PRESETS: dict[str, tuple[str, dict[str, Any]]] = {
                       {**_ANTMAZE, "mc_alpha": 0.2}),
     "antmaze-sacmc-p94": ("Thesis Table C.1: SAC-MC alpha=0.2, max percentile 94 on AntMaze, 400k steps",
                           {**_ANTMAZE, "mc_alpha": 0.2, "max_percentile": 94.0}),
-    "fetchreach-sac": ("Quick demo: SAC+HER on FetchReach, 7k steps (thesis sizes)", {**_FETCHREACH, "mc_alpha": 0.0}),
-    "fetchreach-sacmc": ("Quick demo: SAC-MC alpha=0.2 on FetchReach, 7k steps (thesis sizes)",
+    "fetchreach-sac": ("Quick demo: SAC+HER on FetchReach, 9k steps (thesis sizes)", {**_FETCHREACH, "mc_alpha": 0.0}),
+    "fetchreach-sacmc": ("Quick demo: SAC-MC alpha=0.2 on FetchReach, 9k steps (thesis sizes)",
                          {**_FETCHREACH, "mc_alpha": 0.2}),
 }
 
@@ -199,10 +232,25 @@ def validate(cfg: Config) -> None:
         bad(f"mc_state={cfg.mc_state!r}: choose observation or full")
     if cfg.mc_reduction not in ("transition", "batch"):
         bad(f"mc_reduction={cfg.mc_reduction!r}: choose transition or batch")
-    for name in ("total_steps", "batch_size", "buffer_size", "eval_episodes", "log_every", "mc_history",
+    if cfg.init not in ("torch", "flax"):
+        bad(f"init={cfg.init!r}: choose torch (as stable-baselines3 and the thesis' code) or flax")
+    if cfg.mc_alpha > 0 and cfg.mc_models is False:
+        bad(f"mc_alpha={cfg.mc_alpha} needs the MC models, but mc_models=false: drop --set mc_models=false "
+            "(or set mc_alpha=0 for plain SAC)")
+    for name in ("total_steps", "batch_size", "buffer_size", "eval_episodes", "log_every",
                  "checkpoint_every", "keep_checkpoints"):
         if getattr(cfg, name) < 1:
             bad(f"{name}={getattr(cfg, name)} must be at least 1")
+    for name in ("mc_history", "final_eval_episodes"):
+        if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
+            bad(f"{name}={getattr(cfg, name)} must be at least 1, or null (mc_history: the whole run; "
+                "final_eval_episodes: eval_episodes)")
+    if cfg.mc_history is not None and cfg.mc_history_values > 100_000_000:
+        bad(f"mc_history={cfg.mc_history} gradient steps is {cfg.mc_history_values:,} KL values (> 100M) for the "
+            "window's ring buffer: pick a shorter window, or null to count the whole run without a ring")
+    if cfg.use_mc_models and cfg.mc_history is None and cfg.total_steps * cfg.mc_values_per_step >= 2**31:
+        bad(f"total_steps={cfg.total_steps} x {cfg.mc_values_per_step} KL values per step overflows the "
+            "normaliser's whole-run counts (2^31): set a window, e.g. --set mc_history=400000")
     for name in ("learning_starts", "eval_every", "her_k", "video_every"):
         if getattr(cfg, name) < 0:
             bad(f"{name}={getattr(cfg, name)} must be non-negative")

@@ -95,6 +95,24 @@ def to_env_action(action: np.ndarray, env: gym.Env, action_scale: float) -> np.n
     return a.astype(env.action_space.dtype).reshape(env.action_space.shape)
 
 
+def goal_terminated_fn(env: gym.Env):
+    """`terminated` of transitions under new goals: (achieved (n, g), desired (n, g)) -> (n,) float32, or None.
+
+    HER relabels goals; an environment that ends episodes on success (AntMaze or PointMaze with
+    continuing_task=False) must then get `terminated` recomputed for the new goal, as its reward is.
+    gymnasium-robotics' `compute_terminated` takes one transition at a time (the maze's takes the norm of
+    the whole array), so it is called row by row.
+    """
+    fn = getattr(env.unwrapped, "compute_terminated", None)
+    if fn is None:
+        return None
+
+    def terminated(achieved: np.ndarray, desired: np.ndarray) -> np.ndarray:
+        return np.fromiter((bool(fn(a, d, {})) for a, d in zip(achieved, desired)), np.float32, len(achieved))
+
+    return terminated
+
+
 def success_of(info: dict) -> float | None:
     """Success flag the environment reports (`is_success` for Fetch, `success` for AntMaze), if any."""
     for k in ("is_success", "success"):

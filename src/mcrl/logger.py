@@ -61,8 +61,9 @@ class RunLogger:
     def log_eval(self, row: dict) -> None:
         self._append(self.eval_path, EVAL_COLUMNS, row)
         if self.tb is not None:
-            self.tb.add_scalar("eval/success_rate", row["success_rate"], row["step"])
-            self.tb.add_scalar("eval/mean_return", row["mean_return"], row["step"])
+            for k in ("success_rate", "mean_return"):
+                if row.get(k) is not None:  # environments without a success flag have no success rate
+                    self.tb.add_scalar(f"eval/{k}", row[k], row["step"])
 
     def log_video(self, tag: str, frames, step: int, fps: float = 25.0) -> None:
         """An animated GIF image summary (TensorBoard shows it in the Images tab; no moviepy needed)."""

@@ -47,14 +47,15 @@ class MCModels:
 
     state_dim: int
     hidden: tuple[int, ...]
+    init_scheme: str = "torch"  # see mcrl.networks
 
     @property
     def transition(self) -> TransitionModel:
-        return TransitionModel(self.hidden, self.state_dim)
+        return TransitionModel(self.hidden, self.state_dim, self.init_scheme)
 
     @property
     def action(self) -> ActionModel:
-        return ActionModel(self.hidden, self.state_dim)
+        return ActionModel(self.hidden, self.state_dim, self.init_scheme)
 
     def init(self, key, action_dim: int):
         kt, ka = jax.random.split(key)

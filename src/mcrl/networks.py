@@ -1,21 +1,47 @@
-"""Flax modules: MLP trunks, the tanh-Gaussian actor, twin critics and diagonal-Gaussian models."""
+"""Flax modules: MLP trunks, the tanh-Gaussian actor, twin critics and diagonal-Gaussian models.
+
+Every layer is drawn by `init`: "torch" (the default) as torch's `nn.Linear` draws it, weights and biases
+from U(-1/sqrt(fan_in), 1/sqrt(fan_in)), as in stable-baselines3 and the thesis' code; "flax" is Flax's own
+default (LeCun-normal weights, variance 1/fan_in, zero biases). The choice matters: with Flax's default,
+mcrl's critics drifted upward on FetchPush where stable-baselines3's settled (docs/parity.md).
+"""
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # as in stable-baselines3 and the thesis' MC models
+INITS = ("torch", "flax")
+
+
+def _uniform(bound: float):
+    def init(key, shape, dtype=jnp.float32):
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+    return init
+
+
+def dense_inits(init: str, fan_in: int) -> dict:
+    """Keyword arguments of `nn.Dense` for a layer with `fan_in` inputs under the named scheme."""
+    if init == "torch":
+        return {"kernel_init": nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform"),
+                "bias_init": _uniform(1.0 / math.sqrt(fan_in))}
+    if init == "flax":
+        return {}
+    raise ValueError(f"unknown init {init!r}: choose one of {INITS}")
 
 
 class MLP(nn.Module):
     hidden: Sequence[int]
+    init_scheme: str = "torch"
 
     @nn.compact
     def __call__(self, x):
         for h in self.hidden:
-            x = nn.relu(nn.Dense(h)(x))
+            x = nn.relu(nn.Dense(h, **dense_inits(self.init_scheme, x.shape[-1]))(x))
         return x
 
 
@@ -24,12 +50,14 @@ class GaussianHead(nn.Module):
 
     hidden: Sequence[int]
     out_dim: int
+    init_scheme: str = "torch"
 
     @nn.compact
     def __call__(self, x):
-        h = MLP(self.hidden)(x)
-        mean = nn.Dense(self.out_dim, name="mean")(h)
-        log_std = jnp.clip(nn.Dense(self.out_dim, name="log_std")(h), LOG_STD_MIN, LOG_STD_MAX)
+        h = MLP(self.hidden, self.init_scheme)(x)
+        inits = dense_inits(self.init_scheme, h.shape[-1])
+        mean = nn.Dense(self.out_dim, name="mean", **inits)(h)
+        log_std = jnp.clip(nn.Dense(self.out_dim, name="log_std", **inits)(h), LOG_STD_MIN, LOG_STD_MAX)
         return mean, log_std
 
 
@@ -37,15 +65,16 @@ class TwinCritic(nn.Module):
     """Two independent Q-networks evaluated as one batched computation; returns (2, batch)."""
 
     hidden: Sequence[int]
+    init_scheme: str = "torch"
 
     @nn.compact
     def __call__(self, obs, action):
         x = jnp.concatenate([obs, action], -1)
         ensemble = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True},
                            in_axes=None, out_axes=0, axis_size=2)
-        h = ensemble(self.hidden)(x)
+        h = ensemble(self.hidden, self.init_scheme)(x)
         q = nn.vmap(nn.Dense, variable_axes={"params": 0}, split_rngs={"params": True},
-                    in_axes=0, out_axes=0, axis_size=2)(1)(h)
+                    in_axes=0, out_axes=0, axis_size=2)(1, **dense_inits(self.init_scheme, h.shape[-1]))(h)
         return q[..., 0]
 
 
@@ -54,10 +83,11 @@ class TransitionModel(nn.Module):
 
     hidden: Sequence[int]
     state_dim: int
+    init_scheme: str = "torch"
 
     @nn.compact
     def __call__(self, s, a):
-        return GaussianHead(self.hidden, self.state_dim)(jnp.concatenate([s, a], -1))
+        return GaussianHead(self.hidden, self.state_dim, self.init_scheme)(jnp.concatenate([s, a], -1))
 
 
 class ActionModel(nn.Module):
@@ -65,7 +95,8 @@ class ActionModel(nn.Module):
 
     hidden: Sequence[int]
     state_dim: int
+    init_scheme: str = "torch"
 
     @nn.compact
     def __call__(self, a):
-        return GaussianHead(self.hidden, self.state_dim)(a)
+        return GaussianHead(self.hidden, self.state_dim, self.init_scheme)(a)

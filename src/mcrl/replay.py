@@ -5,7 +5,8 @@ episode's first and last transition, so HER goals are found with array arithmeti
 Relabelling follows stable-baselines3's `HerReplayBuffer`: a fraction k/(k+1) of each batch gets a new
 goal, the next achieved goal of a transition from the same episode chosen by the strategy
 (`future`: this or a later step; `final`: the last step; `episode`: any step), and its reward is
-recomputed with the environment's own `compute_reward`. Only finished episodes are sampled when HER is on.
+recomputed with the environment's own `compute_reward`, and its `terminated` flag with `compute_terminated`
+(for environments that end episodes on success). Only finished episodes are sampled when HER is on.
 """
 from __future__ import annotations
 
@@ -21,12 +22,13 @@ _ARRAYS = ("obs", "action", "reward", "next_obs", "terminated", "ep_first", "ep_
 class ReplayBuffer:
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, *, her: bool = False,
                  observation_dim: int = 0, goal_dim: int = 0, strategy: str = "future", k: int = 4,
-                 compute_reward: Callable | None = None):
+                 compute_reward: Callable | None = None, compute_terminated: Callable | None = None):
         self.capacity = capacity
         self.her = her
         self.od, self.gd = observation_dim, goal_dim
         self.strategy, self.k = strategy, k
         self.compute_reward = compute_reward
+        self.compute_terminated = compute_terminated  # (achieved, desired) -> (n,) float32
         self.obs = np.zeros((capacity, obs_dim), np.float32)
         self.next_obs = np.zeros((capacity, obs_dim), np.float32)
         self.action = np.zeros((capacity, act_dim), np.float32)
@@ -91,6 +93,8 @@ class ReplayBuffer:
         next_obs[:n_her, self.od + self.gd:] = goal
         achieved = next_obs[:n_her, self.od:self.od + self.gd]
         batch["reward"][:n_her] = np.asarray(self.compute_reward(achieved, goal, {}), np.float32).reshape(-1)
+        if self.compute_terminated is not None:
+            batch["terminated"][:n_her] = self.compute_terminated(achieved, goal)
         batch["relabelled"] = np.arange(batch_size) < n_her
         return batch
 

@@ -1,9 +1,25 @@
 """``mcrl report``: one self-contained report of an experiment (a sweep of runs over seeds).
 
-Reads ``EXP/sweep.json`` and ``EXP/runs/<name>/`` (see docs/run-directory.md) and writes
-Markdown with PNG figures beside it, or one HTML file with the PNGs embedded. Works on a partial
-sweep: statistics of final values use finished runs only, learning curves use every run that has
-data, and a section lists the runs that are missing or unfinished.
+Reads ``EXP/sweep.json`` and ``EXP/runs/<name>/`` (see docs/run-directory.md) and writes Markdown
+with PNG figures beside it, or one HTML file with the PNGs embedded. Works on a partial sweep:
+statistics of final values use finished runs only, learning curves use every run that has data,
+and a section lists the runs that are missing or unfinished.
+
+Besides each run's ``config.json``, ``eval.csv``, ``metrics.csv`` and ``done``, it reads:
+
+- ``final_eval.json`` ``{"step": int, "success_rate": float | null, "mean_return": float,
+  "episodes": int}``: the evaluation at the end of training; a run's final numbers come from it,
+  else from the last row of ``eval.csv``.
+- ``peer.json`` ``{"system": "stable-baselines3", "version": "2.9.2"}`` (optional ``"algorithm"``,
+  default ``"SAC"``): the run was trained by another system at the settings of its ``config.json``.
+  Such runs are reference arms, grouped by system and never with mcrl runs. Besides the runs
+  sweep.json lists, directories under ``EXP/runs/`` with a ``peer.json`` are read, and runs from
+  other places can be added (``extra_runs``, ``mcrl report --with DIR``). A peer run without a
+  ``done`` file counts as finished once it has ``final_eval.json``.
+- ``EXP/provenance.json`` ``{"commit", "machine", "command", "rerun_one_seed"}``: printed at the top.
+
+Runs are grouped into configurations by every config key that differs between them, except the
+keys that only name, place or save a run (:data:`NOT_CONFIGURATION`).
 """
 
 from __future__ import annotations
@@ -21,59 +37,38 @@ from typing import Any, Literal
 import numpy as np
 
 from mcrl.errors import MCRLError
-from mcrl.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band, read_csv
-from mcrl.stats import (
-    Interval,
-    align_curves,
-    bootstrap_backend,
-    bootstrap_ci,
-    probability_of_improvement,
-    stratified_iqm_ci,
+from mcrl.plots import has_data, read_csv
+from mcrl.report_sections import (  # noqa: F401 - THESIS_* and thesis_experiment are part of this module's API
+    THESIS_PRESET_PREFIXES,
+    THESIS_RESULTS,
+    Block,
+    build_report,
+    thesis_experiment,
 )
+from mcrl.stats import MIN_SEEDS_FOR_VERDICT  # noqa: F401 - re-exported: the report states it
 
-# Thesis chapter 4 (Tables 4.2-4.5; /work/shared/FACTS.md). "variance" is the thesis' "Variance of
-# Success Rate" (its definition is not stated there); "mean_reward" its "Mean Reward", which in
-# range matches a mean evaluation-episode return (FetchPush: 50 steps of -1/0).
-THESIS_RESULTS: dict[str, dict[str, Any]] = {
-    "FetchPush": {
-        "tables": "Tables 4.2 and 4.3",
-        "total_steps": 150_000,
-        "seeds": 6,
-        "by_alpha": {
-            0.0: {"success_mean": 0.52, "success_var": 0.2, "mean_reward": -31.3},
-            0.2: {"success_mean": 0.75, "success_var": 0.2, "mean_reward": -23.0},
-        },
-        "caveat": "The thesis also reports alpha 0.4 and 0.6 about equal to SAC and 0.8, 1.0 worse, "
-                  "without table values.",
-    },
-    "AntMaze": {
-        "tables": "Tables 4.4 and 4.5",
-        "total_steps": 400_000,
-        "seeds": 4,
-        "by_alpha": {
-            0.0: {"success_mean": 0.38, "success_var": 0.14, "mean_reward": 155.3},
-            0.2: {"success_mean": 0.52, "success_var": 0.16, "mean_reward": 206.5},
-        },
-        "caveat": "The thesis ran its own AntGym maze (action scale 0.4, map not recoverable from the "
-                  "text); mcrl's dense UMaze is a public stand-in, so the task itself differs.",
-    },
-}
-# Preset name prefix (lower case) -> THESIS_RESULTS key.
-THESIS_PRESET_PREFIXES: dict[str, str] = {"fetchpush": "FetchPush", "antmaze": "AntMaze"}
-
-CONF = 0.95
-SEED = 0  # every bootstrap in a report uses it: the same runs give the same report
+# Config keys that name, place or only save a run (not what it trains or how it is evaluated): runs
+# that differ only in these are seeds of one configuration.
+NOT_CONFIGURATION = frozenset({"seed", "out_dir", "preset", "video_every", "keep_checkpoints", "save_buffer",
+                               "checkpoint_every", "log_every"})
 
 
 # ------------------------------------------------------------------------------------ loading
 
 
+def _number(v: Any) -> float | None:
+    """A JSON number as float; None for null, strings, booleans and non-finite values."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
 @dataclass
 class Run:
-    """One run of the sweep and what it has written so far."""
+    """One run (of the sweep, or a reference arm) and what it has written so far."""
 
     name: str
-    config_key: str
+    config_key: str | None  # sweep.json's label of its configuration; None for runs from elsewhere
     seed: int | None
     dir: Path
     status: Literal["finished", "partial", "missing"]
@@ -81,18 +76,46 @@ class Run:
     overrides: dict[str, Any] = field(default_factory=dict)
     eval: dict[str, np.ndarray] = field(default_factory=dict)
     metrics: dict[str, np.ndarray] = field(default_factory=dict)
+    final_eval: dict[str, Any] = field(default_factory=dict)  # final_eval.json; {} when absent
+    peer: dict[str, Any] | None = None  # peer.json of a run trained by another system
+    source: Path | None = None  # the experiment or directory it was read from
 
     @property
     def has_eval(self) -> bool:
         return has_data(self.eval, "step") and has_data(self.eval, "success_rate")
 
     @property
+    def _final_from_json(self) -> bool:
+        return _number(self.final_eval.get("mean_return")) is not None
+
+    @property
     def final(self) -> tuple[float, float] | None:
-        """(success rate, mean return) of the final evaluation, for finished runs only."""
-        if self.status != "finished" or not self.has_eval:
+        """(success rate, mean return) of the final evaluation, for finished runs only.
+
+        From final_eval.json when the run wrote one (its many-episode evaluation), else from the last
+        row of eval.csv.
+        """
+        if self.status != "finished":
+            return None
+        if self._final_from_json:
+            s = _number(self.final_eval.get("success_rate"))
+            return (math.nan if s is None else s), float(self.final_eval["mean_return"])
+        if not self.has_eval:
             return None
         ret = self.eval.get("mean_return", np.array([math.nan]))
         return float(self.eval["success_rate"][-1]), float(ret[-1])
+
+    @property
+    def final_source(self) -> tuple[str, int | None] | None:
+        """Where :attr:`final` comes from: ("final_eval.json" | "eval.csv", episodes if known)."""
+        if self.final is None:
+            return None
+        if self._final_from_json:
+            n = _number(self.final_eval.get("episodes"))
+        else:
+            eps = self.eval.get("episodes")
+            n = float(eps[-1]) if eps is not None and eps.size and np.isfinite(eps[-1]) else None
+        return ("final_eval.json" if self._final_from_json else "eval.csv"), (None if n is None else int(n))
 
     @property
     def last_step(self) -> float | None:
@@ -108,10 +131,11 @@ class Run:
 
 @dataclass
 class ConfigGroup:
-    """The runs of one configuration (same config_key, different seeds)."""
+    """The runs of one configuration (the same settings, different seeds)."""
 
-    key: str
+    key: str  # its label in the report
     runs: list[Run]
+    peer: str | None = None  # "stable-baselines3 2.9.2" for a reference arm trained by another system
 
     @property
     def mc_alpha(self) -> float | None:
@@ -142,6 +166,8 @@ class Experiment:
     preset: str
     runs: list[Run]
     configs: list[ConfigGroup]
+    provenance: dict[str, Any] = field(default_factory=dict)  # EXP/provenance.json
+    extra_sources: list[Path] = field(default_factory=list)  # the extra_runs paths read
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -154,8 +180,60 @@ def _read_json(path: Path) -> dict[str, Any]:
     return obj if isinstance(obj, dict) else {}
 
 
-def load_experiment(experiment_dir: str | Path) -> Experiment:
-    """Read sweep.json and every run directory it lists; raise MCRLError when there is nothing to report."""
+def _read_run(rd: Path, name: str, config_key: str | None, seed: Any, overrides: dict[str, Any],
+              source: Path) -> Run:
+    peer = _read_json(rd / "peer.json") or None
+    final_eval = _read_json(rd / "final_eval.json")
+    done = (rd / "done").exists() or (peer is not None and bool(final_eval))
+    status = "finished" if done else ("partial" if rd.is_dir() else "missing")
+    config = _read_json(rd / "config.json")
+    if seed is None and isinstance(config.get("seed"), int):
+        seed = config["seed"]
+    return Run(name=name, config_key=config_key, seed=seed, dir=rd, status=status, config=config,
+               overrides=overrides, eval=read_csv(rd / "eval.csv"), metrics=read_csv(rd / "metrics.csv"),
+               final_eval=final_eval, peer=peer, source=source)
+
+
+def _is_run_dir(d: Path) -> bool:
+    return d.is_dir() and any((d / f).is_file() for f in ("config.json", "eval.csv", "peer.json"))
+
+
+def _sweep_runs(d: Path, prefix: str = "") -> tuple[dict[str, Any], list[Run]]:
+    """sweep.json of experiment ``d`` and its runs: those it lists, then unlisted peer runs under runs/."""
+    sweep = _read_json(d / "sweep.json")
+    entries = sweep.get("runs") or []
+    if not entries:
+        raise MCRLError(f"{d / 'sweep.json'} lists no runs: re-create the experiment with `mcrl sweep`")
+    runs = [_read_run(d / "runs" / str(e["name"]), prefix + str(e["name"]), str(e.get("config_key") or e["name"]),
+                      e.get("seed"), dict(e.get("overrides") or {}), d) for e in entries]
+    listed = {str(e["name"]) for e in entries}
+    if (d / "runs").is_dir():
+        for rd in sorted((d / "runs").iterdir()):
+            if rd.name not in listed and (rd / "peer.json").is_file():
+                runs.append(_read_run(rd, prefix + rd.name, None, None, {}, d))
+    return sweep, runs
+
+
+def _extra_runs(path: Path) -> list[Run]:
+    """The runs of an extra path: an experiment directory, a run directory, or a directory of run directories."""
+    if not path.is_dir():
+        raise MCRLError(f"--with {path}: no such directory: give an experiment directory, a run directory "
+                        "or a directory of run directories")
+    if (path / "sweep.json").is_file():
+        return _sweep_runs(path, prefix=f"{path.name}/")[1]
+    if _is_run_dir(path):
+        return [_read_run(path, path.name, None, None, {}, path.parent)]
+    subdirs = [d for d in sorted(path.iterdir()) if _is_run_dir(d)]
+    if not subdirs:
+        raise MCRLError(f"--with {path} holds no run (no sweep.json, and no config.json, eval.csv or peer.json in "
+                        "it or its subdirectories): give an experiment or run directory")
+    return [_read_run(d, f"{path.name}/{d.name}", None, None, {}, path) for d in subdirs]
+
+
+def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path] = ()) -> Experiment:
+    """Read sweep.json, every run directory it lists, and the runs of ``extra_runs`` (experiment
+    directories, run directories, or directories of run directories); raise MCRLError when there is
+    nothing to report."""
     d = Path(experiment_dir)
     if not d.is_dir():
         raise MCRLError(f"experiment directory {d} does not exist: pass the directory `mcrl sweep` wrote "
@@ -163,295 +241,130 @@ def load_experiment(experiment_dir: str | Path) -> Experiment:
     if not (d / "sweep.json").is_file():
         raise MCRLError(f"{d} has no sweep.json: pass the experiment directory `mcrl sweep` wrote "
                         "(for a single run use `mcrl plot RUN_DIR`)")
-    sweep = _read_json(d / "sweep.json")
-    entries = sweep.get("runs") or []
-    if not entries:
-        raise MCRLError(f"{d / 'sweep.json'} lists no runs: re-create the experiment with `mcrl sweep`")
-
-    runs = []
-    for e in entries:
-        name = str(e["name"])
-        rd = d / "runs" / name
-        status = "finished" if (rd / "done").exists() else ("partial" if rd.is_dir() else "missing")
-        overrides = dict(e.get("overrides") or {})
-        runs.append(Run(name=name, config_key=str(e.get("config_key") or name), seed=e.get("seed"), dir=rd,
-                        status=status, config=_read_json(rd / "config.json"), overrides=overrides,
-                        eval=read_csv(rd / "eval.csv"), metrics=read_csv(rd / "metrics.csv")))
-    if not any(r.has_eval for r in runs):
+    sweep, runs = _sweep_runs(d)
+    extra = [Path(p) for p in extra_runs]
+    seen = {r.dir.resolve() for r in runs}
+    for p in extra:
+        for r in _extra_runs(p):
+            if r.dir.resolve() not in seen:  # a run given twice (e.g. --with EXP itself) counts once
+                seen.add(r.dir.resolve())
+                runs.append(r)
+    if not any(r.has_eval or r.final is not None for r in runs):
         started = sum(r.status != "missing" for r in runs)
         raise MCRLError(f"no run in {d} has written an evaluation yet ({started} of {len(runs)} runs started): "
                         "wait for the first evaluation (eval.csv), then run `mcrl report` again")
+    preset = str(sweep.get("preset") or next((r.config["preset"] for r in runs if r.config.get("preset")), ""))
+    return Experiment(d, preset, runs, group_runs(runs), _read_json(d / "provenance.json"), extra)
 
-    groups: dict[str, list[Run]] = {}
+
+# ------------------------------------------------------------------------------------ grouping
+
+
+def _settings(config: dict[str, Any]) -> dict[str, Any] | None:
+    """The settings that define a run's configuration: its config.json completed with defaults
+    (so a key left out equals its default), without :data:`NOT_CONFIGURATION`. None without config.json."""
+    if not config:
+        return None
+    from mcrl.config import Config  # noqa: PLC0415 - only needed here
+
+    try:
+        full = Config.from_run_json(config).to_dict()
+    except (MCRLError, TypeError, ValueError):
+        full = dict(config)  # a config this mcrl cannot read (other keys): compare it as written
+    return {k: v for k, v in full.items() if k not in NOT_CONFIGURATION}
+
+
+def _family(r: Run) -> str:
+    """"" for mcrl runs; "<system> <algorithm>" for a reference arm."""
+    if r.peer is None:
+        return ""
+    return f"{r.peer.get('system') or 'peer'} {r.peer.get('algorithm') or 'SAC'}"
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(map(_fmt, v)) + "]"
+    return "null" if v is None else str(v)
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal as JSON (a tuple from Config equals a list from sweep.json; 1 equals 1.0)."""
+    return json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str) or (
+        isinstance(a, (int, float)) and isinstance(b, (int, float)) and float(a) == float(b))
+
+
+def _varying(settings: Sequence[dict[str, Any]]) -> list[str]:
+    """Keys whose value differs between the settings (mc_alpha first, then alphabetical)."""
+    def value(s: dict[str, Any], k: str) -> str:
+        return json.dumps(s[k], sort_keys=True, default=str) if k in s else "<unset>"
+
+    keys = {k for s in settings for k in s}
+    vary = {k for k in keys if len({value(s, k) for s in settings}) > 1}
+    return sorted(vary, key=lambda k: (k != "mc_alpha", k))
+
+
+def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
+    """Group runs into configurations: equal settings (and, for reference arms, the same system and
+    version), whatever their sweep labels say. Labels are sweep.json's config keys when they name the
+    groups one-to-one, else the differing settings, e.g. ``mc_alpha=0.2, mc_reduction=batch``."""
+    buckets: dict[tuple[str, str], list[Run]] = {}
+    settings: dict[tuple[str, str], dict[str, Any]] = {}
+    unstarted: list[Run] = []
     for r in runs:
-        groups.setdefault(r.config_key, []).append(r)
-    configs = [ConfigGroup(k, sorted(v, key=lambda r: (r.seed is None, r.seed or 0))) for k, v in groups.items()]
-    # SAC first, then increasing alpha: the order of the thesis' tables and figures.
-    configs.sort(key=lambda g: (g.mc_alpha is None, g.mc_alpha or 0.0, g.key))
-    preset = str(sweep.get("preset") or next((r.config["preset"] for r in runs if "preset" in r.config), ""))
-    return Experiment(d, preset, runs, configs)
-
-
-# ------------------------------------------------------------------------------- formatting
-
-
-def _f(x: float | None, digits: int) -> str:
-    return "n/a" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
-
-
-def _ci(iv: tuple[float, float] | None, digits: int) -> str:
-    return "n/a" if iv is None else f"[{_f(iv[0], digits)}, {_f(iv[1], digits)}]"
-
-
-def _steps(n: float | int | None) -> str:
-    return "?" if n is None else f"{int(n):,}"
-
-
-def _mean_ci(x: np.ndarray) -> tuple[float, tuple[float, float] | None]:
-    """Mean and 95% percentile-bootstrap CI over seeds; no CI from fewer than 2 seeds."""
-    if x.size == 0:
-        return math.nan, None
-    return float(x.mean()), (bootstrap_ci(x, np.mean, conf=CONF, rng=SEED) if x.size >= 2 else None)
-
-
-def _var(x: np.ndarray) -> float:
-    """Sample variance across seeds (ddof=1); NaN for fewer than 2 seeds."""
-    return float(x.var(ddof=1)) if x.size >= 2 else math.nan
-
-
-# Blocks the report is made of, rendered to Markdown or HTML:
-# ("h", level, text) | ("p", text) | ("ul", [text]) | ("table", headers, rows) | ("fig", file, png, caption)
-Block = tuple[Any, ...]
-
-
-# ---------------------------------------------------------------------------------- sections
-
-
-def _overview(exp: Experiment) -> list[Block]:
-    n_done = sum(r.status == "finished" for r in exp.runs)
-    envs = sorted({str(r.config["env_id"]) for r in exp.runs if "env_id" in r.config})
-    budgets = sorted({r.total_steps for r in exp.runs if r.total_steps is not None})
-    return [
-        ("h", 1, f"mcrl report: {exp.dir.name}"),
-        ("ul", [
-            f"preset: `{exp.preset or '?'}`; environment: {', '.join(f'`{e}`' for e in envs) or '?'}",
-            f"training budget (total_steps): {', '.join(_steps(b) for b in budgets) or '?'}",
-            f"runs finished: {n_done} of {len(exp.runs)}"
-            + ("" if n_done == len(exp.runs) else " (see [Missing and unfinished runs](#missing-and-unfinished-runs))"),
-            f"configurations: {', '.join(f'`{g.key}`' for g in exp.configs)}",
-            f"confidence intervals: 95%, percentile bootstrap over seeds (seed {SEED}); IQM and probability of "
-            f"improvement: stratified bootstrap via {bootstrap_backend()}",
-        ]),
-    ]
-
-
-def _curves_by_config(series: Sequence[tuple[str, dict[str, np.ndarray]]], col: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """(config key, CSV columns) per run -> (step grid, {config key: curves (n_runs, n_grid)})."""
-    grid, curves = align_curves([(cols["step"], cols[col]) for _, cols in series])
-    keys = [k for k, _ in series]
-    return grid, {k: curves[[i for i, kk in enumerate(keys) if kk == k]] for k in dict.fromkeys(keys)}
-
-
-def _learning_curves(exp: Experiment) -> list[Block]:
-    fig, (ax_s, ax_r) = panel_grid(2)
-    colors = {g.key: COLORS[i % len(COLORS)] for i, g in enumerate(exp.configs)}
-    for ax, col, title, ylabel in ((ax_s, "success_rate", "eval success rate", "success rate"),
-                                   (ax_r, "mean_return", "eval mean return", "return")):
-        series = [(g.key, r.eval) for g in exp.configs for r in g.runs if r.has_eval and has_data(r.eval, col)]
-        grid, by_cfg = _curves_by_config(series, col)
-        plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED)
-    partial = sum(r.status == "partial" and r.has_eval for r in exp.runs)
-    return [
-        ("h", 2, "Learning curves"),
-        ("fig", "learning_curves.png", figure_to_png(fig),
-         "Deterministic evaluation during training: mean over seeds, shaded 95% bootstrap band over seeds."
-         + (f" {partial} unfinished run(s) are included up to their last evaluation." if partial else "")),
-    ]
-
-
-def _final_table(exp: Experiment) -> list[Block]:
-    rows = []
-    for g in exp.configs:
-        s, m = g.finals()
-        ms, cs = _mean_ci(s)
-        mm, cm = _mean_ci(m)
-        budgets = sorted({r.total_steps for r in g.finished if r.total_steps is not None})
-        rows.append([f"`{g.key}`", _f(g.mc_alpha, 2), f"{s.size} / {len(g.runs)}", ", ".join(map(_steps, budgets)) or "?",
-                     f"{_f(ms, 3)} {_ci(cs, 3)}", _f(_var(s), 4), f"{_f(mm, 2)} {_ci(cm, 2)}"])
-    return [
-        ("h", 2, "Final performance per configuration"),
-        ("p", "Final evaluation of each finished run (the last row of its eval.csv), across seeds: mean with 95% "
-              "bootstrap CI, and sample variance (ddof=1) of the success rate, as in the thesis' tables."),
-        ("table", ["configuration", "mc_alpha", "seeds finished", "total_steps", "mean success [95% CI]",
-                   "variance of success", "mean final return [95% CI]"], rows),
-    ]
-
-
-def _sac_and_mc(exp: Experiment) -> tuple[list[ConfigGroup], list[ConfigGroup]]:
-    with_data = [g for g in exp.configs if g.finished and g.mc_alpha is not None]
-    return [g for g in with_data if g.mc_alpha == 0.0], [g for g in with_data if g.mc_alpha > 0.0]
-
-
-def _reading(p: Interval) -> str:
-    if p[1] > 0.5:
-        return "better than SAC (CI above 0.5)"
-    if p[2] < 0.5:
-        return "worse than SAC (CI below 0.5)"
-    return "no clear difference (CI contains 0.5)"
-
-
-def _robust_stats(exp: Experiment) -> list[Block]:
-    out: list[Block] = [("h", 2, "IQM and probability of improvement")]
-    groups = [g for g in exp.configs if g.finished]
-    succ = stratified_iqm_ci({g.key: g.finals()[0] for g in groups}, conf=CONF, seed=SEED)
-    ret = stratified_iqm_ci({g.key: g.finals()[1] for g in groups}, conf=CONF, seed=SEED)
-    out += [
-        ("p", "Interquartile mean (25% trimmed mean) of the final evaluation over finished seeds, with "
-              "stratified-bootstrap 95% CIs (rliable's method; the overview names the implementation that ran). With fewer than 4 seeds the IQM is the plain mean."),
-        ("table", ["configuration", "seeds", "IQM success [95% CI]", "IQM final return [95% CI]"],
-         [[f"`{g.key}`", str(len(g.finished)), f"{_f(succ[g.key][0], 3)} {_ci(succ[g.key][1:], 3)}",
-           f"{_f(ret[g.key][0], 2)} {_ci(ret[g.key][1:], 2)}"] for g in groups]),
-    ]
-    sac, mc = _sac_and_mc(exp)
-    if not sac or not mc:
-        missing = "no finished SAC configuration (mc_alpha = 0)" if not sac else "no finished SAC-MC configuration (mc_alpha > 0)"
-        return out + [("p", f"Probability of improvement: not computed, the sweep has {missing}.")]
-    rows = []
-    for x in mc:
-        for y in sac:
-            (sx, mx), (sy, my) = x.finals(), y.finals()
-            ps = probability_of_improvement(sx, sy, conf=CONF, seed=SEED)
-            pm = probability_of_improvement(mx, my, conf=CONF, seed=SEED)
-            rows.append([f"`{x.key}` > `{y.key}`", f"{sx.size} / {sy.size}", f"{_f(ps[0], 3)} {_ci(ps[1:], 3)}",
-                         _reading(ps), f"{_f(pm[0], 3)} {_ci(pm[1:], 3)}", _reading(pm)])
-    return out + [
-        ("p", "Probability of improvement P(X > Y): the chance that a random finished seed of the SAC-MC "
-              "configuration X ends above a random seed of the SAC configuration Y (ties count half; 0.5 = "
-              "no difference), with stratified-bootstrap 95% CIs (rliable's method; the overview names the implementation that ran)."),
-        ("table", ["comparison", "seeds X / Y", "P(X > Y), success [95% CI]", "reading (success)",
-                   "P(X > Y), final return [95% CI]", "reading (return)"], rows),
-    ]
-
-
-def thesis_experiment(preset: str) -> str | None:
-    """The THESIS_RESULTS key a preset reproduces, by name prefix; None if it matches none."""
-    p = preset.lower()
-    return next((v for k, v in THESIS_PRESET_PREFIXES.items() if p.startswith(k)), None)
-
-
-def _verdict(what: str, thesis: float, ours: float, ci: tuple[float, float] | None, n: int, digits: int) -> str:
-    if ci is None:
-        return (f"{what}: {n} finished seed(s) give no confidence interval, so no verdict "
-                f"(thesis {thesis:.{digits}f}, ours {_f(ours, digits)}).")
-    where = ("inside" if ci[0] <= thesis <= ci[1] else "above" if thesis > ci[1] else "below")
-    text = f"{what}: the thesis' {thesis:.{digits}f} lies {where} our 95% CI {_ci(ci, digits)} (our mean {ours:.{digits}f})"
-    if where == "inside":
-        return text + ": consistent with the thesis."
-    return text + (": our runs do worse than the thesis reports." if where == "above"
-                   else ": our runs do better than the thesis reports.")
-
-
-def _thesis_comparison(exp: Experiment) -> list[Block]:
-    name = thesis_experiment(exp.preset)
-    if name is None:
-        return []
-    t = THESIS_RESULTS[name]
-    out: list[Block] = [("h", 2, f"Comparison with the thesis ({name})")]
-    budgets = sorted({r.total_steps for r in exp.runs if r.total_steps is not None})
-    notes = []
-    if budgets != [t["total_steps"]]:
-        notes.append(f"**Not like-for-like:** our runs trained for {', '.join(map(_steps, budgets)) or 'an unknown number of'} "
-                     f"env steps, the thesis' for {_steps(t['total_steps'])}; final numbers after a different "
-                     "budget are not expected to match.")
-    notes.append(f"The thesis used {t['seeds']} seeds per configuration ({t['tables']}); it does not say how its "
-                 "'variance of success rate' was computed, ours is the sample variance of the final success rate "
-                 "across seeds. Its 'mean reward' is compared with our mean final evaluation return.")
-    notes.append(t["caveat"])
-    if min((len(g.finished) for g in exp.configs if g.finished), default=0) < 5:
-        notes.append("With fewer than 5 seeds a percentile-bootstrap CI is too narrow (it covers the true mean "
-                     "less than 95% of the time), so an 'outside our CI' verdict is weaker than it reads.")
-    rows, verdicts = [], []
-    for alpha, th in t["by_alpha"].items():
-        label = "SAC" if alpha == 0 else f"SAC-MC alpha={alpha:g}"
-        ours = [g for g in exp.configs if g.mc_alpha is not None and math.isclose(g.mc_alpha, alpha)]
-        if not ours:
-            rows.append([label, f"{th['success_mean']:.2f}", "not in this sweep", f"{th['success_var']:.2f}", "",
-                         f"{th['mean_reward']:.1f}", "not in this sweep"])
+        s = _settings(r.config)
+        if s is None:
+            unstarted.append(r)
             continue
-        for g in ours:
-            s, m = g.finals()
-            ms, cs = _mean_ci(s)
-            mm, cm = _mean_ci(m)
-            rows.append([f"{label} (`{g.key}`)", f"{th['success_mean']:.2f}", f"{_f(ms, 3)} {_ci(cs, 3)}",
-                         f"{th['success_var']:.2f}", _f(_var(s), 4), f"{th['mean_reward']:.1f}",
-                         f"{_f(mm, 2)} {_ci(cm, 2)}"])
-            verdicts.append(_verdict(f"{label} (`{g.key}`) success rate", th["success_mean"], ms, cs, s.size, 2))
-            verdicts.append(_verdict(f"{label} (`{g.key}`) mean return", th["mean_reward"], mm, cm, m.size, 1))
-    sac, mc = _sac_and_mc(exp)
-    for x in (g for g in mc if math.isclose(g.mc_alpha or 0.0, 0.2)):
-        for y in sac:
-            p = probability_of_improvement(x.finals()[0], y.finals()[0], conf=CONF, seed=SEED)
-            claim = ("supported" if p[1] > 0.5 else "contradicted (SAC-MC does worse)" if p[2] < 0.5
-                     else "not supported at 95% (the CI contains 0.5)")
-            verdicts.append(f"The thesis' claim that SAC-MC alpha=0.2 reaches a higher success rate than SAC: "
-                            f"P(`{x.key}` > `{y.key}`) = {_f(p[0], 3)} {_ci(p[1:], 3)}, so the claim is {claim} "
-                            "by our runs.")
-    return out + [
-        ("table", ["algorithm", "thesis success", "ours success [95% CI]", "thesis variance", "our variance",
-                   "thesis mean reward", "our mean final return [95% CI]"], rows),
-        ("ul", verdicts or ["No configuration of this sweep has the thesis' mc_alpha (0 or 0.2) with finished runs."]),
-        ("p", "**Caveats:**"),
-        ("ul", notes),
-    ]
+        if r.peer is not None:
+            s["version"] = r.peer.get("version")
+        key = (_family(r), json.dumps(s, sort_keys=True, default=str))
+        buckets.setdefault(key, []).append(r)
+        settings[key] = s
+    # Runs not started have no config.json: they join the group of their sweep's config_key, or, when
+    # that label spans several groups, the one whose settings agree with the run's sweep overrides.
+    for r in unstarted:
+        homes = [k for k, v in buckets.items() if k[0] == _family(r) and k in settings and r.config_key is not None
+                 and any(o.config_key == r.config_key and o.source == r.source for o in v)]
+        if len(homes) > 1:
+            homes = [k for k in homes if all(_same(settings[k].get(o), v) for o, v in r.overrides.items()
+                                             if o not in NOT_CONFIGURATION)]
+        key = homes[0] if len(homes) == 1 else (_family(r), f"unstarted:{r.source}:{r.config_key or r.name}")
+        buckets.setdefault(key, []).append(r)
 
+    labels: dict[tuple[str, str], str] = {}
+    for fam in dict.fromkeys(k[0] for k in buckets):
+        keys = [k for k in buckets if k[0] == fam]
+        sweep_keys = [{r.config_key for r in buckets[k]} for k in keys]
+        one_to_one = (all(len(s) == 1 and None not in s for s in sweep_keys)
+                      and len({next(iter(s)) for s in sweep_keys}) == len(keys))
+        vary = _varying([settings[k] for k in keys if k in settings])
+        for k, sk in zip(keys, sweep_keys):
+            parts = ", ".join(f"{v}={_fmt(settings[k].get(v))}" for v in vary) if k in settings else ""
+            if fam:
+                labels[k] = f"{fam} ({parts})" if parts else fam
+            elif one_to_one:
+                labels[k] = next(iter(sk))
+            else:
+                cfg = next((r.config for r in buckets[k] if r.config), {})
+                labels[k] = (parts or next((c for c in sk if c), None) or cfg.get("preset") or cfg.get("env_id")
+                             or buckets[k][0].name)
+    seen: dict[str, int] = {}
+    for k, lab in labels.items():  # labels of groups whose settings are unknown may repeat
+        seen[lab] = seen.get(lab, 0) + 1
+        labels[k] = lab if seen[lab] == 1 else f"{lab} #{seen[lab]}"
 
-def _mc_section(exp: Experiment) -> list[Block]:
-    out: list[Block] = [("h", 2, "MC reward and raw KL during training")]
-    groups = [g for g in exp.configs if any(has_data(r.metrics, "mean_mc_reward") for r in g.runs)]
-    if not groups:
-        return out + [("p", "No run has MC reward data (metrics.csv `mean_mc_reward` is empty: no MC models).")]
-    colors = {g.key: COLORS[i % len(COLORS)] for i, g in enumerate(exp.configs)}
-    fig, axes = panel_grid(2)
-    cols = ("mean_mc_reward", "mean_raw_kl")
-    for ax, col, title, ylabel in zip(axes, cols, ("mean MC reward (normalised)", "mean raw KL"), ("reward", "nats")):
-        series = [(g.key, r.metrics) for g in groups for r in g.runs if has_data(r.metrics, col)]
-        grid, by_cfg = _curves_by_config(series, col)
-        plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED)
-
-    def last_mean(g: ConfigGroup, col: str) -> float | None:
-        """Mean over seeds of each run's last logged value of ``col``."""
-        v = [r.metrics[col][np.isfinite(r.metrics[col])][-1] for r in g.runs if has_data(r.metrics, col)]
-        return float(np.mean(v)) if v else None
-
-    rows = [[f"`{g.key}`", _f(g.mc_alpha, 2), *(_f(last_mean(g, c), 4) for c in cols)] for g in groups]
-    return out + [
-        ("p", "The MC reward added to the replay batches and the raw per-transition KL (nats) it is normalised "
-              "from, per configuration (mean over seeds, 95% bootstrap band), like the thesis' Fig. 4.7. As the "
-              "thesis notes, the MC reward is relative (normalised by percentiles of past KL values): compare "
-              "its course over training, not its level, across tasks."),
-        ("fig", "mc_reward_kl.png", figure_to_png(fig), "MC reward and raw KL from metrics.csv."),
-        ("table", ["configuration", "mc_alpha", "last mean MC reward (mean over seeds)", "last mean raw KL (nats)"], rows),
-    ]
-
-
-def _missing_section(exp: Experiment) -> list[Block]:
-    out: list[Block] = [("h", 2, "Missing and unfinished runs")]
-    bad = [r for r in exp.runs if r.status != "finished" or not r.has_eval]
-    if not bad:
-        return out + [("p", f"None: all {len(exp.runs)} runs finished.")]
-    budget = {r.name: g.total_steps for g in exp.configs for r in g.runs}
-    rows = []
-    for r in bad:
-        status = {"missing": "missing (no run directory)", "partial": "unfinished (no `done` file)",
-                  "finished": "finished, but eval.csv has no rows"}[r.status]
-        rows.append([f"`{r.name}`", f"`{r.config_key}`", str(r.seed), status,
-                     f"{_steps(r.last_step) if r.last_step is not None else '-'} / {_steps(r.total_steps or budget[r.name])}"])
-    return out + [
-        ("p", f"{len(bad)} of {len(exp.runs)} runs are left out of the final-performance statistics "
-              "(unfinished runs still appear in the learning curves up to their last evaluation). Re-run or "
-              "resume them, then write the report again."),
-        ("table", ["run", "configuration", "seed", "status", "last logged step / total_steps"], rows),
-    ]
+    groups = []
+    for k, rs in buckets.items():
+        peer = rs[0].peer
+        system = None if peer is None else f"{peer.get('system') or 'peer'} {peer.get('version') or ''}".strip()
+        groups.append(ConfigGroup(labels[k], sorted(rs, key=lambda r: (r.seed is None, r.seed or 0, r.name)), system))
+    # mcrl's SAC first, then increasing alpha (the order of the thesis' tables), then the reference arms.
+    groups.sort(key=lambda g: (g.peer is not None, g.mc_alpha is None, g.mc_alpha or 0.0, g.key))
+    return groups
 
 
 # --------------------------------------------------------------------------------- rendering
@@ -520,21 +433,21 @@ def _to_html(blocks: Sequence[Block], title: str) -> str:
 
 
 def write_report(experiment_dir: str | Path, out_dir: str | Path | None = None,
-                 fmt: Literal["md", "html"] = "md") -> Path:
+                 fmt: Literal["md", "html"] = "md", extra_runs: Sequence[str | Path] = ()) -> Path:
     """Write the report of an experiment directory; returns the report file's path.
 
     ``fmt="md"``: ``OUT/report.md`` with its PNG figures beside it; ``fmt="html"``: one
     self-contained ``OUT/report.html`` (figures embedded). ``out_dir`` defaults to ``EXP/report``.
+    ``extra_runs``: more runs to include (see :func:`load_experiment`), e.g. reference arms.
     Raises MCRLError when the directory does not exist, has no sweep.json, lists no runs, or no
     run has evaluated yet.
     """
     if fmt not in ("md", "html"):
         raise MCRLError(f"unknown report format {fmt!r}: use --format md or --format html")
-    exp = load_experiment(experiment_dir)
+    exp = load_experiment(experiment_dir, extra_runs)
+    blocks = build_report(exp)  # before creating OUT: a failing section leaves nothing behind
     out = Path(out_dir) if out_dir is not None else exp.dir / "report"
     out.mkdir(parents=True, exist_ok=True)
-    blocks = (_overview(exp) + _learning_curves(exp) + _final_table(exp) + _robust_stats(exp)
-              + _thesis_comparison(exp) + _mc_section(exp) + _missing_section(exp))
     if fmt == "md":
         path = out / "report.md"
         path.write_text(_to_markdown(blocks, out))

@@ -74,15 +74,15 @@ class Agent:
 
     @property
     def actor_net(self):
-        return GaussianHead(self.cfg.hidden_sizes, self.act_dim)
+        return GaussianHead(self.cfg.hidden_sizes, self.act_dim, self.cfg.init)
 
     @property
     def critic_net(self):
-        return TwinCritic(self.cfg.hidden_sizes)
+        return TwinCritic(self.cfg.hidden_sizes, self.cfg.init)
 
     @property
     def mc_models(self) -> MCModels:
-        return MCModels(state_dim=self.mc_dim, hidden=self.cfg.mc_hidden_sizes)
+        return MCModels(state_dim=self.mc_dim, hidden=self.cfg.mc_hidden_sizes, init_scheme=self.cfg.init)
 
     @property
     def target_entropy(self) -> float:
@@ -102,7 +102,7 @@ class Agent:
         if self.cfg.use_mc_models:
             mc = self.mc_models.init(k_mc, self.act_dim)
             mc_opt = self._opt(self.cfg.mc_lr).init(mc)
-            norm = normaliser.init(self.cfg.mc_history)
+            norm = normaliser.init(self.cfg.mc_history_values)
         lr = self.cfg.learning_rate
         return TrainState(actor=actor, critic=critic, critic_target=jax.tree.map(jnp.copy, critic), log_ent_coef=log_ent,
                           actor_opt=self._opt(lr).init(actor), critic_opt=self._opt(lr).init(critic),
@@ -128,7 +128,7 @@ class Agent:
         kl = transition_kl(out)
         if cfg.mc_reduction == "batch":  # the thesis' code: one batch-mean value for every transition
             kl = jnp.broadcast_to(kl.mean(), kl.shape)
-            norm = normaliser.push(state.norm, kl[:1])
+            norm = normaliser.push(state.norm, kl[:1])  # one history value per step, as its code appended
         else:
             norm = normaliser.push(state.norm, kl)
         lo, hi = normaliser.bounds(norm, cfg.min_percentile, cfg.max_percentile)

@@ -31,6 +31,12 @@ DEFAULT_N_BOOT = 2000
 """rliable's own examples use 2,000 reps for probability of improvement; 50,000 (its default)
 costs minutes per comparison for no visible change at 2-3 decimals."""
 
+MIN_SEEDS_FOR_VERDICT = 3
+"""The fewest finished seeds each compared configuration needs before a report reads a result as a
+difference, or a thesis claim as borne out or not. With one seed per configuration every bootstrap
+resample is the same pair, so P(X > Y) comes out 0 or 1 with a zero-width interval; with two, the
+interval still has only a handful of distinct resamples."""
+
 
 def _rng(rng: np.random.Generator | int | None) -> np.random.Generator:
     """A Generator from a seed; None means seed 0 (reports must be reproducible)."""
@@ -135,10 +141,10 @@ def align_curves(
 
 
 def _rly_metrics() -> Any:
-    """``rliable.metrics``, imported on first use so plotting works without the sweep extra."""
-    from rliable import metrics  # noqa: PLC0415
+    """``rliable.metrics``, imported on first use (it is slow to import and plots do not need it)."""
+    from mcrl.extras import require  # noqa: PLC0415
 
-    return metrics
+    return require("rliable.metrics", None, "the report's statistics")
 
 
 @functools.cache
@@ -269,3 +275,38 @@ def probability_of_improvement(
         k = min(chunk, n_boot - start)
         stats[start:start + k] = _poi_batch(_stratified_resample(a, rng, k), _stratified_resample(b, rng, k))
     return (point, *_percentiles(stats, conf))
+
+
+# ------------------------------------------------------------------------------------ power
+
+
+def _z(p: float) -> float:
+    return float(scipy.stats.norm.ppf(p))
+
+
+def minimum_detectable_difference(x: Any, y: Any, alpha: float = 0.05, power: float = 0.8) -> float:
+    """Smallest true difference of means that a two-sided two-sample test at level ``alpha`` detects
+    with probability ``power``, given the samples' spread and sizes.
+
+    Welch / normal approximation: ``(z_{1-alpha/2} + z_{power}) * sqrt(s_x^2/n_x + s_y^2/n_y)`` with
+    sample variances (ddof=1). NaN when either sample has fewer than 2 values (no variance).
+    """
+    a, b = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    if a.size < 2 or b.size < 2:
+        return float("nan")
+    se = np.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size)
+    return float((_z(1 - alpha / 2) + _z(power)) * se)
+
+
+def seeds_to_detect(x: Any, y: Any, difference: float, alpha: float = 0.05, power: float = 0.8) -> int | None:
+    """Seeds per configuration (the same for both) for :func:`minimum_detectable_difference` to reach
+    ``|difference|``, if the seeds spread as ``x`` and ``y`` do.
+
+    Solves ``(z_{1-alpha/2} + z_{power})^2 (s_x^2 + s_y^2) / n = difference^2`` for n, at least 2.
+    None when ``difference`` is 0 (no number of seeds suffices) or a sample has fewer than 2 values.
+    """
+    a, b = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    if a.size < 2 or b.size < 2 or not difference or not np.isfinite(difference):
+        return None
+    n = (_z(1 - alpha / 2) + _z(power)) ** 2 * (a.var(ddof=1) + b.var(ddof=1)) / difference ** 2
+    return max(2, int(np.ceil(n - 1e-9)))  # the tolerance keeps an exact solution from rounding up

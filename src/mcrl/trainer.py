@@ -17,7 +17,7 @@ import numpy as np
 
 from mcrl import checkpoint, normaliser
 from mcrl.config import Config
-from mcrl.envs import episode_seed, flatten_obs, inspect, make_env, success_of, to_env_action
+from mcrl.envs import episode_seed, flatten_obs, goal_terminated_fn, inspect, make_env, success_of, to_env_action
 from mcrl.errors import MCRLError
 from mcrl.logger import RunLogger
 from mcrl.replay import ReplayBuffer
@@ -65,22 +65,34 @@ class Evaluator:
 def _build(cfg: Config):
     env = make_env(cfg)
     spec = inspect(env, cfg)
-    if cfg.use_mc_models and cfg.mc_reduction == "transition" and cfg.mc_history < cfg.batch_size:
-        raise MCRLError(f"mc_history={cfg.mc_history} < batch_size={cfg.batch_size}: the normaliser must hold "
-                        "at least one batch of KL values; raise mc_history")
     her = spec.goal_env if cfg.her is None else cfg.her
     agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
     buffer = ReplayBuffer(cfg.buffer_size, spec.obs_dim, spec.act_dim, her=her, observation_dim=spec.observation_dim,
                           goal_dim=spec.goal_dim, strategy=cfg.her_strategy, k=cfg.her_k,
-                          compute_reward=env.unwrapped.compute_reward if her else None)
+                          compute_reward=env.unwrapped.compute_reward if her else None,
+                          compute_terminated=goal_terminated_fn(env) if her else None)
     return env, spec, agent, buffer
 
 
-def restore(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, dict]:
+def restore(cfg: Config, agent: Agent, ckpt: Path, for_resume: bool = False) -> tuple[TrainState, dict]:
     meta = checkpoint.load_meta(ckpt)
-    state = checkpoint.restore_state(ckpt, agent.init(cfg.seed))
-    if state.norm is not None:
-        state = state._replace(norm=normaliser.rebuild(state.norm.ring, state.norm.ptr, state.norm.count))
+    template = agent.init(cfg.seed)
+    state = checkpoint.restore_state(ckpt, template._replace(norm=None))
+    if template.norm is not None:
+        packed = checkpoint.load_extra(ckpt, "normaliser")
+        if packed is not None:
+            try:
+                norm = normaliser.unpack(packed, cfg.mc_history_values)
+            except (KeyError, ValueError) as e:
+                raise MCRLError(f"checkpoint {ckpt}: its normaliser does not fit this config ({e}): resume with "
+                                "the run's own config.json") from None
+        else:
+            legacy = checkpoint.legacy_normaliser(ckpt)
+            if legacy is None or for_resume:
+                raise MCRLError(f"checkpoint {ckpt} has no normaliser history (written by mcrl 0.1 or damaged): "
+                                "it can be evaluated and rendered, not resumed; start a new run")
+            norm = normaliser.from_values(legacy["values"], cfg.mc_history_values)
+        state = state._replace(norm=norm)
     return state, meta
 
 
@@ -103,7 +115,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     interval = {"returns": [], "successes": []}
     last_eval = {"success_rate": None, "mean_return": None}
     if ckpt is not None:
-        state, meta = restore(cfg, agent, ckpt)
+        state, meta = restore(cfg, agent, ckpt, for_resume=True)
         arrays = checkpoint.load_buffer_arrays(ckpt) if meta["has_buffer"] else None
         if arrays is None:
             raise MCRLError(f"checkpoint {ckpt} has no replay buffer (save_buffer=false): resuming would not "
@@ -116,6 +128,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(cfg.to_json())
     (run_dir / "done").unlink(missing_ok=True)
+    (run_dir / "final_eval.json").unlink(missing_ok=True)
     log = RunLogger(run_dir, resume_step=step if resume else None)
     evaluator = Evaluator(cfg, agent)
 
@@ -128,12 +141,13 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     def save_checkpoint():
         meta = {"episode": episode, "eval_round": eval_round, "host_rng": rng.bit_generator.state,
                 "interval": interval, "last_eval": last_eval, "config": cfg.to_dict()}
-        checkpoint.save(run_dir, step, state, meta, buffer.state_arrays() if cfg.save_buffer else None,
-                        cfg.keep_checkpoints)
+        extra = {"normaliser": normaliser.pack(state.norm)} if state.norm is not None else None
+        checkpoint.save(run_dir, step, state._replace(norm=None), meta,
+                        buffer.state_arrays() if cfg.save_buffer else None, cfg.keep_checkpoints, extra)
 
-    def evaluate():
+    def evaluate(episodes: int = cfg.eval_episodes):
         nonlocal eval_round, last_eval
-        res = evaluator.run(state.actor, eval_round, cfg.eval_episodes)
+        res = evaluator.run(state.actor, eval_round, episodes)
         eval_round += 1
         last_eval = res
         log.log_eval({"step": step, **res})
@@ -178,8 +192,9 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
             if cfg.eval_every and step % cfg.eval_every == 0 and step < cfg.total_steps:
                 evaluate()
             if step % cfg.log_every == 0 or step == cfg.total_steps:
-                if step == cfg.total_steps:
-                    evaluate()  # the final evaluation lands in the last row
+                if step == cfg.total_steps:  # the final evaluation (thesis: "after training") lands in the last row
+                    evaluate(cfg.n_final_eval_episodes)
+                    write_json_atomic(run_dir / "final_eval.json", {"step": step, **last_eval})
                 metrics, state = agent.read_metrics(state)
                 elapsed = time.perf_counter() - t_start
                 sps = (step - steps_at_start) / elapsed if elapsed > 0 else None
@@ -201,7 +216,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
             if bar is not None:
                 bar.update(1)
         save_checkpoint()
-        (run_dir / "done").write_text(json.dumps({"step": step, **last_eval}))
+        write_json_atomic(run_dir / "done", {"step": step, **last_eval})
     finally:
         if bar is not None:
             bar.close()
@@ -211,12 +226,18 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     return run_dir
 
 
+def write_json_atomic(path: Path, obj: dict) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj))
+    tmp.replace(path)
+
+
 def load_run_config(run_dir: Path | str) -> Config:
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise MCRLError(f"{run_dir} is not a run directory (no config.json): give the directory `mcrl train` printed")
     try:
-        return Config.from_dict(json.loads(path.read_text()))
+        return Config.from_run_json(json.loads(path.read_text()))
     except ValueError as e:
         raise MCRLError(f"{path} is not valid JSON ({e}): the run directory is damaged") from None
 

@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# Start or resume the FetchPush reproduction (issue 9) from a clone of one fixed commit, in the background.
+#
+#   bash docs/reproduction/fetchpush/run.sh start   # clone + install (once), then start what is unfinished
+#   bash docs/reproduction/fetchpush/run.sh sync    # copy finished runs' small files here (then git commit them)
+#   bash docs/reproduction/fetchpush/run.sh status
+#
+# The runs live in $WORK (default /work/repro): checkpoints and buffers never enter git. Finished runs committed
+# under this directory are copied back into $WORK before starting, so a new machine resumes where git left off
+# (a run in progress restarts from its last checkpoint if $WORK survived, from scratch otherwise).
+set -euo pipefail
+HERE="$(cd "$(dirname "$0")" && pwd)"
+REPO="$(cd "$HERE/../../.." && pwd)"
+COMMIT="$(cat "$HERE/COMMIT")"          # the code version of every run
+WORK="${WORK:-/work/repro}"
+CODE="$WORK/mcrl-$COMMIT"
+ARMS="main code-variant sb3-sac"        # experiment dirs: SAC + SAC-MC 0.2; the thesis code's variant; SB3
+
+cmd="${1:-status}"
+sync() {
+  for arm in $ARMS; do
+    [ -d "$WORK/$arm" ] && "$CODE/.venv/bin/python" "$CODE/benchmarks/sync_runs.py" "$WORK/$arm" "$HERE/$arm"
+  done
+  return 0
+}
+case "$cmd" in
+  sync) sync ;;
+  status)
+    for arm in $ARMS; do
+      echo "$arm: $(ls -d "$WORK/$arm"/runs/*/done 2>/dev/null | wc -l) finished;" \
+           "$(ls -d "$HERE/$arm"/runs/*/done 2>/dev/null | wc -l) committed"
+    done ;;
+  start)
+    if [ ! -x "$CODE/.venv/bin/mcrl" ]; then
+      git clone -q "$REPO" "$CODE" && git -C "$CODE" checkout -q "$COMMIT"
+      (cd "$CODE" && make install && .venv/bin/pip install -q -e ".[bench]")
+    fi
+    for arm in $ARMS; do  # finished runs from git: the sweep skips them
+      if [ -d "$HERE/$arm/runs" ]; then mkdir -p "$WORK/$arm/runs"; cp -rn "$HERE/$arm/runs/." "$WORK/$arm/runs/"; fi
+      [ -f "$HERE/$arm/sweep.json" ] && [ ! -f "$WORK/$arm/sweep.json" ] && cp "$HERE/$arm/sweep.json" "$WORK/$arm/"
+    done
+    machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
+    mk_prov() {  # $1 arm, $2 command, $3 one-seed command
+      printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
+        "$COMMIT" "$machine" "$2" "$3" > "$WORK/$1/provenance.json"
+    }
+    M="$CODE/.venv/bin/mcrl"
+    mkdir -p "$WORK/main" "$WORK/code-variant" "$WORK/sb3-sac/runs"
+    # SAC and SAC-MC 0.2, seed-major order (s0 of both arms first), 2 runs at a time, 1 thread each
+    mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --exp EXP" \
+      "git checkout $COMMIT && mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
+    nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
+      --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
+    echo "started main sweep (log $WORK/main.log)"
+    if [ "${WITH_SB3:-1}" = 1 ]; then  # stable-baselines3 reference, seeds 0-2, one after another
+      (for s in 0 1 2; do
+         d="$WORK/sb3-sac/runs/sb3-sac-s$s"
+         [ -f "$d/done" ] && continue
+         "$CODE/.venv/bin/python" "$CODE/benchmarks/parity_sb3.py" sb3 --preset fetchpush-sac --seed $s \
+           --threads 1 --run-dir "$d" --overwrite
+       done) > "$WORK/sb3.log" 2>&1 &
+      echo "started stable-baselines3 seeds 0-2 (log $WORK/sb3.log)"
+    fi
+    if [ "${WITH_VARIANT:-0}" = 1 ]; then  # the thesis' code's MC reward: after the first two arms
+      mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --exp EXP" \
+        "git checkout $COMMIT && mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
+      nohup "$M" sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 \
+        --workers 1 --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
+      echo "started the code-variant sweep (log $WORK/code-variant.log)"
+    fi ;;
+  *) echo "usage: $0 start|sync|status" >&2; exit 2 ;;
+esac
