@@ -40,19 +40,20 @@ case "$cmd" in
       [ -f "$HERE/$arm/sweep.json" ] && [ ! -f "$WORK/$arm/sweep.json" ] && cp "$HERE/$arm/sweep.json" "$WORK/$arm/"
     done
     machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
-    mk_prov() {  # $1 arm, $2 command, $3 one-seed command
+    mk_prov() {  # $1 arm, $2 command, $3 one-seed command; after the sweep made its directory (it wants it empty)
+      for _ in $(seq 120); do [ -f "$WORK/$1/sweep.json" ] && break; sleep 1; done
       printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
         "$COMMIT" "$machine" "$2" "$3" > "$WORK/$1/provenance.json"
     }
     M="$CODE/.venv/bin/mcrl"
-    mkdir -p "$WORK/main" "$WORK/code-variant" "$WORK/sb3-sac/runs"
+    mkdir -p "$WORK/sb3-sac/runs"
     # SAC and SAC-MC 0.2, seed-major order (s0 of both arms first), 2 runs at a time, 1 thread each
-    mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --exp EXP" \
-      "git checkout $COMMIT && mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
     nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
       --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
     echo "started main sweep (log $WORK/main.log)"
-    if [ "${WITH_SB3:-1}" = 1 ]; then  # stable-baselines3 reference, seeds 0-2, one after another
+    mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
+      "git checkout $COMMIT && mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
+    if [ "${WITH_SB3:-1}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then  # stable-baselines3 reference, seeds 0-2, one after another
       (for s in 0 1 2; do
          d="$WORK/sb3-sac/runs/sb3-sac-s$s"
          [ -f "$d/done" ] && continue
@@ -62,11 +63,11 @@ case "$cmd" in
       echo "started stable-baselines3 seeds 0-2 (log $WORK/sb3.log)"
     fi
     if [ "${WITH_VARIANT:-0}" = 1 ]; then  # the thesis' code's MC reward: after the first two arms
-      mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --exp EXP" \
-        "git checkout $COMMIT && mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
       nohup "$M" sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 \
         --workers 1 --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
       echo "started the code-variant sweep (log $WORK/code-variant.log)"
+      mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --exp EXP" \
+        "git checkout $COMMIT && mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
     fi ;;
   *) echo "usage: $0 start|sync|status" >&2; exit 2 ;;
 esac
