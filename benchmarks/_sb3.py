@@ -24,11 +24,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-#: Per-gradient-step diagnostics ParitySAC sums (all are METRIC_COLUMNS of mcrl.logger).
+#: Per-gradient-step diagnostics ParitySAC sums (all are METRIC_COLUMNS of mcrl.run.logger).
 DIAGNOSTICS = ("actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean", "mean_ext_reward",
                "mean_total_reward")
 
-# mcrl's evaluation seeding (mcrl.trainer): stream 1, episode index round * 100_003 + i. Using the same
+# mcrl's evaluation seeding (mcrl.run.trainer): stream 1, episode index round * 100_003 + i. Using the same
 # seeds makes both systems' evaluation rounds play the same start states and goals.
 _EVAL_STREAM = 1
 
@@ -283,7 +283,7 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
     """
     import numpy as np
     from mcrl.envs import success_of
-    from mcrl.logger import EVAL_COLUMNS, METRIC_COLUMNS
+    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS
     from stable_baselines3.common.callbacks import BaseCallback
 
     total = cfg.total_steps
@@ -383,7 +383,7 @@ def train(cfg, run_dir: Path, threads: int = 1, progress: bool = True, overwrite
     model, _ = build_model(cfg)  # validates before anything is written
     import stable_baselines3
 
-    from mcrl.logger import EVAL_COLUMNS, METRIC_COLUMNS
+    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS
 
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(cfg.to_json())

@@ -49,7 +49,7 @@ What is measured, and how
    on the latter when idle.) ``--torch-threads N`` skips the probe.
 
 3. **mcrl** (:func:`mcrl_numbers`) for the presets ``fetchpush-sac`` and
-   ``fetchpush-sacmc-0.2``, delegated to ``mcrl.benchmarking.measure_training``, which returns
+   ``fetchpush-sacmc-0.2``, delegated to ``harness.measure_training``, which returns
    the medians ``steps_per_s`` (the real training loop), ``ms_per_grad_step`` (the jitted
    update alone, without replay sampling), ``ms_per_env_step`` and ``grad_step_gflop`` (XLA's
    cost analysis of the compiled update: all ops, not only matmuls, so it can differ a little
@@ -412,7 +412,7 @@ def mcrl_numbers(preset: str, steps: int, repeats: int) -> dict:
     and ``grad_step_gflop``. Raises ImportError when mcrl (or its benchmarking module) is
     missing; the caller reports that as "mcrl: not available".
     """
-    from mcrl.benchmarking import measure_training
+    from harness import measure_training
 
     return measure_training(preset=preset, steps=steps, repeats=repeats)
 

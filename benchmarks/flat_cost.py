@@ -4,7 +4,7 @@ thesis-sized gradient step with an empty vs a full normaliser history.
     python benchmarks/flat_cost.py [--preset fetchpush-sacmc-0.2] [--steps 150000] [--hidden 64]
                                    [--json out.json]
 
-The long run uses the real training loop (`mcrl.trainer.train`) with the preset's 1,000,000-transition
+The long run uses the real training loop (`mcrl.run.trainer.train`) with the preset's 1,000,000-transition
 buffer and 400,000-value normaliser history. `--hidden` shrinks the networks so that a 150,000-step run fits
 in minutes: with small networks the per-step cost of everything that could grow with the run (replay
 buffer, HER sampling, normaliser, logging, checkpoints) is a larger share of the step, so growth would show
@@ -21,10 +21,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from mcrl.benchmarking import measure_update
+from harness import measure_update
 from mcrl.config import resolve_config
-from mcrl.logger import read_csv
-from mcrl.trainer import train
+from mcrl.run.rundir import read_rows
+from mcrl.run.trainer import train
 
 
 def long_run(preset: str, steps: int, hidden: int) -> dict:
@@ -35,7 +35,7 @@ def long_run(preset: str, steps: int, hidden: int) -> dict:
                                   "checkpoint_every": steps // 5, "keep_checkpoints": 1})
     with tempfile.TemporaryDirectory() as d:
         run = train(cfg, Path(d) / "long", progress=True)
-        rows = read_csv(run / "metrics.csv")
+        rows = read_rows(run / "metrics.csv")
     t = [(int(r["step"]), r["time_s"]) for r in rows]
     tenth = steps // 10
 

@@ -28,7 +28,6 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_sb3.py
@@ -113,19 +112,19 @@ class RunData:
     """What compare needs from one run directory (mcrl's or an SB3 parity run)."""
 
     def __init__(self, system: str, run_dir: Path):
-        from mcrl.logger import read_csv
+        from mcrl.run.rundir import read_json, read_rows
 
         self.system, self.dir = system, Path(run_dir)
         if not (self.dir / "metrics.csv").is_file():
             raise FileNotFoundError(f"{self.dir} has no metrics.csv: give run directories of `mcrl train` or "
                                     "`parity_sb3.py sb3`")
-        self.config = _read_json(self.dir / "config.json")
-        self.peer = _read_json(self.dir / "peer.json")
-        self.final = _read_json(self.dir / "final_eval.json") or None
+        self.config = read_json(self.dir / "config.json")
+        self.peer = read_json(self.dir / "peer.json")
+        self.final = read_json(self.dir / "final_eval.json") or None
         self.finished = (self.dir / "done").exists()
         self.seed = self.config.get("seed")
-        metrics = read_csv(self.dir / "metrics.csv")
-        evals = read_csv(self.dir / "eval.csv") if (self.dir / "eval.csv").is_file() else []
+        metrics = read_rows(self.dir / "metrics.csv")
+        evals = read_rows(self.dir / "eval.csv")
         self.metrics = {int(r["step"]): r for r in metrics if r.get("step") is not None}
         # At the last step a run also has its final evaluation (more episodes); both are at that step, keep
         # the last row, which is the final one.
@@ -155,14 +154,6 @@ class RunData:
         pts = [(s, r.get(key)) for s, r in sorted(src.items())]
         pts = [(s, v) for s, v in pts if v is not None and math.isfinite(v)]
         return [s for s, _ in pts], [v for _, v in pts]
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        obj = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return obj if isinstance(obj, dict) else {}
 
 
 def _system_name(system: str, runs: list[RunData]) -> str:

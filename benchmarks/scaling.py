@@ -12,7 +12,7 @@ import json
 import sys
 from pathlib import Path
 
-from mcrl.benchmarking import measure_update
+from harness import measure_update
 
 
 def main() -> int:

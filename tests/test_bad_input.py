@@ -1,6 +1,5 @@
 """Every bad input: one line naming the problem and the fix, exit code 2, nothing written."""
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -10,7 +9,7 @@ import pytest
 
 from mcrl.cli import main
 from mcrl.config import resolve_config
-from mcrl.trainer import train
+from mcrl.run.trainer import train
 
 
 def _run(args, tmp_path, capsys):

@@ -4,12 +4,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mcrl import normaliser
+from mcrl.algo import normaliser
 from mcrl.config import resolve_config
 from mcrl.envs import episode_seed, flatten_obs, inspect, make_env, to_env_action
-from mcrl.mc import transition_kl
+from mcrl.algo.mc import transition_kl
 from mcrl.replay import ReplayBuffer
-from mcrl.sac import Agent, Batch
+from mcrl.algo.sac import Agent, Batch
 
 
 def _filled_buffer(cfg, episodes=6, strategy="future"):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mcrl.config import resolve_config
-from mcrl.sac import Agent
+from mcrl.algo.sac import Agent
 
 
 def _layers(params, prefix=""):

@@ -7,8 +7,8 @@ Measured (seed 0, torch-style initialisation, 20 episodes per evaluation): SAC-M
 import pytest
 
 from mcrl.config import resolve_config
-from mcrl.logger import read_csv
-from mcrl.trainer import train
+from mcrl.run.rundir import read_rows as read_csv
+from mcrl.run.trainer import train
 
 
 @pytest.mark.slow

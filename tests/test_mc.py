@@ -6,7 +6,7 @@ import optax
 import pytest
 
 from mcrl.cli import main
-from mcrl.mc import MCModels, gaussian_kl, gaussian_nll, transition_kl, MCOutputs
+from mcrl.algo.mc import MCModels, gaussian_kl, gaussian_nll, transition_kl, MCOutputs
 
 
 def test_kl_closed_form_matches_monte_carlo():

@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mcrl import normaliser as N
+from mcrl.algo import normaliser as N
 
 
 @pytest.mark.parametrize("capacity,batch,dist", [(1000, 64, "lognormal"), (4096, 256, "exponential"),

@@ -5,13 +5,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mcrl import normaliser
+from mcrl.algo import normaliser
+from mcrl.algo.mc import gaussian_kl
 from mcrl.cli import main
 from mcrl.config import resolve_config
-from mcrl.mc import gaussian_kl
-from mcrl.render import record_episode
-from mcrl.trainer import load_policy, train
+from mcrl.run.policy import load_policy
+from mcrl.run.trainer import train
 from mcrl.video import Timeline, make_render_env
+from mcrl.video.render import record_episode
 
 
 @pytest.fixture(scope="module")

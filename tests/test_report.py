@@ -1,4 +1,4 @@
-"""mcrl.report and mcrl.plots on a synthetic experiment directory (fake CSVs, no training)."""
+"""mcrl.analysis (experiment loading, report, plots) on a synthetic experiment directory (fake CSVs, no training)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from mcrl.errors import MCRLError
-from mcrl.logger import EVAL_COLUMNS, METRIC_COLUMNS
-from mcrl.plots import plot_run
+from mcrl.analysis.experiment import load_experiment
+from mcrl.analysis.plots import plot_run
+from mcrl.analysis.report import write_report
+from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT, probability_of_improvement
+from mcrl.analysis.thesis import THESIS_RESULTS, thesis_experiment
 from mcrl.cli import main
-from mcrl.report import MIN_SEEDS_FOR_VERDICT, THESIS_RESULTS, load_experiment, thesis_experiment, write_report
-from mcrl.stats import probability_of_improvement
+from mcrl.errors import MCRLError
+from mcrl.run.logger import EVAL_COLUMNS, METRIC_COLUMNS
 
 TOTAL = 1000
 # Final eval per seed. SAC: success 0.2/0.4/0.6 (mean 0.4, sample var 0.04), return -40/-30/-20 (mean -30).

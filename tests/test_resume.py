@@ -1,6 +1,5 @@
 """A run killed with SIGKILL and resumed ends with the same numbers as an uninterrupted run."""
 import csv
-import os
 import signal
 import subprocess
 import sys
@@ -8,9 +7,7 @@ import time
 
 import pytest
 
-LEARNING_COLUMNS = ("step", "episodes", "train_return", "train_success_rate", "eval_success_rate",
-                    "eval_mean_return", "actor_loss", "critic_loss", "ent_coef", "q_mean", "transition_model_loss",
-                    "action_model_loss", "mean_mc_reward", "mean_raw_kl", "mc_bound_low", "mc_bound_high")
+from mcrl.run.rundir import LEARNING_COLUMNS
 
 
 def _args(small):
@@ -55,9 +52,10 @@ def test_kill_and_resume_matches_uninterrupted_run(tmp_path, small):
 
 
 def test_leftover_temporary_checkpoint_from_a_killed_save_is_ignored(tmp_path, small):
-    from mcrl import checkpoint
+    from mcrl.run import checkpoint
     from mcrl.config import resolve_config
-    from mcrl.trainer import load_policy, train
+    from mcrl.run.policy import load_policy
+    from mcrl.run.trainer import train
 
     cfg = resolve_config("fetchreach-sac", {**small, "total_steps": 150, "eval_every": 0})
     run = train(cfg, tmp_path / "r", progress=False)

@@ -1,9 +1,10 @@
 """SAC(-MC) equivalences: mc_alpha = 0 is exactly SAC, and the MC reward really changes learning."""
 import numpy as np
 
-from mcrl import checkpoint
+from mcrl.run import checkpoint
 from mcrl.config import resolve_config
-from mcrl.trainer import load_policy, train
+from mcrl.run.policy import load_policy
+from mcrl.run.trainer import train
 
 
 def _run(tmp_path, name, small, **over):
@@ -30,7 +31,8 @@ def test_alpha_zero_with_mc_models_is_bit_identical_to_sac(tmp_path, small):
     s_sac, s_mc0, s_mc2 = _params(sac), _params(mc0), _params(mc2)
     assert s_mc0.mc is not None and s_sac.mc is None  # the MC models really trained alongside
     assert _same(s_sac.actor, s_mc0.actor) and _same(s_sac.critic, s_mc0.critic)
-    assert np.array_equal(s_sac.log_ent_coef, s_mc0.log_ent_coef)
+    assert np.array_equal(s_sac.ent.params, s_mc0.ent.params)
+    assert _same(s_sac.q.opt, s_mc0.q.opt) and _same(s_sac.q_target, s_mc0.q_target)
     assert (sac / "eval.csv").read_text() == (mc0 / "eval.csv").read_text()
     # control: a non-zero weight changes the critic (the test can fail)
     assert not _same(s_sac.critic, s_mc2.critic)
@@ -48,8 +50,8 @@ def test_checkpoint_holds_everything_and_no_pickle(tmp_path, small):
     ck = checkpoint.find(run)
     with np.load(ck / "state.npz", allow_pickle=False) as f:
         keys = set(f.files)
-    for part in (".actor", ".critic", ".critic_target", ".actor_opt", ".mc", ".mc_opt", ".key",
-                 ".log_ent_coef"):
+    for part in (".pi.params", ".pi.opt", ".q.params", ".q.opt", ".q_target", ".ent.params", ".ent.opt",
+                 ".mc_models.params", ".mc_models.opt", ".key"):
         assert any(k.startswith(part) for k in keys), part
     with np.load(ck / "normaliser.npz", allow_pickle=False) as f:
         assert {"ring", "ptr", "count", "c3_index", "c3_count"} <= set(f.files)

@@ -1,11 +1,11 @@
-"""mcrl.stats against hand-computed values and known distributions."""
+"""mcrl.analysis.stats against hand-computed values and known distributions."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mcrl import stats
+from mcrl.analysis import stats
 
 
 @pytest.fixture(params=["numpy", "rliable"])

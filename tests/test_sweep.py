@@ -1,5 +1,5 @@
 """`mcrl sweep`: local and Ray backends give the same runs, a killed sweep resumes, MLflow tracking,
-bad input.
+bad input, run files shipped from a worker.
 
 Tiny runs (300 steps, small networks); the sweeps run through the CLI in subprocesses, as a user
 would run them. The whole file takes about 3-4 minutes on 2 cores.
@@ -18,16 +18,12 @@ import time
 import pytest
 
 from mcrl.cli import main
+from mcrl.run.rundir import LEARNING_COLUMNS
 
 TINY = {"hidden_sizes": "[64,64]", "mc_hidden_sizes": "[64,64]", "batch_size": 64, "buffer_size": 20000,
         "eval_every": 150, "eval_episodes": 2, "log_every": 100, "learning_starts": 100,
         "checkpoint_every": 100}
 STEPS = 300
-# metrics.csv columns that depend on the learning (not on wall-clock time)
-LEARNING_COLUMNS = ("step", "episodes", "train_return", "train_success_rate", "eval_success_rate",
-                    "eval_mean_return", "actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean",
-                    "transition_model_loss", "action_model_loss", "mean_ext_reward", "mean_mc_reward",
-                    "mean_total_reward", "mean_raw_kl", "mc_bound_low", "mc_bound_high")
 CLI = [sys.executable, "-c", "import sys; from mcrl.cli import main; sys.exit(main())"]
 
 
@@ -90,7 +86,7 @@ def test_local_sweep_writes_the_experiment_directory(local_exp):
         assert cfg["mc_alpha"] == (0.2 if name.startswith("a0.2") else 0.0)
         assert re.search(rf"start {re.escape(name)} \(pid \d+\)", out)
         assert re.search(rf"finished {re.escape(name)} in", out)
-    from mcrl.report import load_experiment
+    from mcrl.analysis.report import load_experiment
 
     loaded = load_experiment(exp)  # the format `mcrl report` reads
     assert [g.key for g in loaded.configs] == ["alpha=0", "alpha=0.2"]
@@ -98,13 +94,13 @@ def test_local_sweep_writes_the_experiment_directory(local_exp):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(900)  # Ray's start-up and four runs: ~3 min on a quiet 2-core machine, far more on a busy one
 def test_ray_backend_gives_the_same_runs(local_exp, tmp_path):
     exp, _ = local_exp
     ray_exp = tmp_path / "ray"
     # one run pretends its worker cannot see EXP: it trains in a temporary directory and ships its files back
     res = _run_cli(_sweep_args(ray_exp, "0,0.2", "2", "--backend", "ray", "--workers", "2"),
-                   env={"MCRL_SWEEP_SHIP_FILES": "a0.2-s1"})
+                   env={"MCRL_SWEEP_SHIP_FILES": "a0.2-s1"}, timeout=850)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "start a0.2-s1 (pid" in res.stdout and "files shipped back" in res.stdout
     for name in RUN_NAMES:
@@ -325,7 +321,7 @@ def test_mlflow_receives_the_runs_videos(local_exp, tmp_path):
 
     from mcrl.config import Config
     from mcrl.sweep import RunPlan
-    from mcrl.tracking import Tracker
+    from mcrl.sweep.tracking import Tracker
 
     exp, _ = local_exp
     run_dir = tmp_path / "exp" / "runs" / "v"
@@ -338,3 +334,39 @@ def test_mlflow_receives_the_runs_videos(local_exp, tmp_path):
     rid = tracker.log_run(RunPlan("v", "alpha=0.2", cfg.seed, {}, cfg), run_dir)
     client = MlflowClient(tracking_uri=tracker.uri)
     assert [a.path for a in client.list_artifacts(rid, "videos")] == ["videos/eval_step300.mp4"]
+
+
+def test_run_files_ship_between_worker_and_driver(tmp_path):
+    """What a Ray worker without EXP sends (collect_run_files) the driver writes back as the trainer would."""
+    from mcrl.run import rundir
+    from mcrl.sweep.files import collect_run_files, run_status, write_run_files
+
+    src = tmp_path / "worker" / "r"
+    for step in (100, 200):
+        ck = rundir.checkpoint_root(src) / rundir.checkpoint_name(step)
+        ck.mkdir(parents=True)
+        (ck / "meta.json").write_text(json.dumps({"step": step}))
+    rundir.write_latest(src, rundir.checkpoint_name(200))
+    (src / rundir.CONFIG).write_text("{}")
+    (src / rundir.METRICS).write_text("step,x\n100,1\n200,2\n3")  # a row being written: not shipped yet
+    files = collect_run_files(src, final=False)
+    assert sorted(files) == ["checkpoints/latest", f"checkpoints/{rundir.checkpoint_name(200)}/meta.json",
+                             rundir.CONFIG, rundir.METRICS]
+
+    dst = tmp_path / "exp" / "runs" / "r"
+    write_run_files(dst, files, keep=1)
+    assert rundir.latest_checkpoint(dst) == rundir.checkpoint_name(200)
+    assert (dst / rundir.METRICS).read_text() == "step,x\n100,1\n200,2\n"
+    assert run_status(dst) == ("checkpoint", 200)
+    rundir.write_json_atomic(src / rundir.DONE, {"step": 300})
+    write_run_files(dst, collect_run_files(src, final=True), keep=1)
+    assert run_status(dst) == ("finished", 300)
+    assert (dst / rundir.METRICS).read_text() == (src / rundir.METRICS).read_text()  # at the end: all of it
+
+
+def test_importing_the_sweep_package_imports_neither_jax_nor_ray():
+    """A local worker sets its thread limits before jax is imported; Ray reads its auth settings on import."""
+    code = ("import sys, mcrl.sweep, mcrl.sweep.tracking; "
+            "print(sorted(m for m in ('jax', 'ray', 'mlflow', 'matplotlib') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.strip() == "[]", res.stdout + res.stderr

@@ -16,10 +16,11 @@ import pytest
 
 from mcrl import video
 from mcrl.errors import MCRLError
+from mcrl.video import timeline
 
 ENV_ID = "FetchReach-v4"
 STEPS = 12
-SRC = str(Path(video.__file__).resolve().parents[1])
+SRC = str(Path(video.__file__).resolve().parents[2])  # src/, above the mcrl package
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +104,7 @@ def test_compose_frame_keeps_scene_and_moves_cursor(episode):
     assert a.dtype == np.uint8 and a.shape[1] == W and a.shape[0] > H and a.shape[0] % 2 == 0
     np.testing.assert_array_equal(a[:H], scene)  # scene on top, untouched
     assert not np.array_equal(a[H:], b[H:])  # the overlay follows t
-    tl = video._get_timeline(series, success, W)  # the cached static timeline
+    tl = timeline._get_timeline(series, success, W)  # the cached static timeline
     x2, x9 = tl.cursor_x(2), tl.cursor_x(9)
     assert x2 < x9
     col = a[H:, x2].astype(int)
@@ -200,7 +201,7 @@ def test_check_renderer_names_libosmesa6_when_osmesa_is_missing():
 
 def test_check_renderer_when_no_backend_works():
     # MUJOCO_GL unset: mcrl probes egl then osmesa; make every probe fail
-    proc = _run_check({}, prelude="video._probe_backend = lambda b, timeout=60: 'unavailable (test)'")
+    proc = _run_check({}, prelude="video.gl._probe_backend = lambda b, timeout=60: 'unavailable (test)'")
     msg = _message(proc)
     assert "no headless OpenGL backend" in msg
     assert "libegl1 libgl1-mesa-dri" in msg and "libosmesa6" in msg

@@ -15,13 +15,13 @@ __version__ = "0.1.0"
 
 def train(config: Config, run_dir=None, progress: bool = True):
     """Train SAC / SAC-MC with `config`; returns the run directory (see docs/run-directory.md)."""
-    from mcrl.trainer import train as _train
+    from mcrl.run.trainer import train as _train
 
     return _train(config, run_dir=run_dir, progress=progress)
 
 
 def evaluate_run(run_dir, episodes: int | None = None, checkpoint: int | None = None) -> dict:
     """Re-evaluate the saved policy of a run; returns {"success_rate", "mean_return", "episodes"}."""
-    from mcrl.trainer import evaluate_run as _evaluate_run
+    from mcrl.run.evaluation import evaluate_run as _evaluate_run
 
     return _evaluate_run(run_dir, episodes=episodes, checkpoint=checkpoint)

@@ -1,7 +1,6 @@
 """Environment construction and the observation / action / success conventions mcrl relies on."""
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -40,6 +39,10 @@ class EnvSpec:
     mc_dim: int  # the MC state: first mc_dim entries of the flat obs
     max_episode_steps: int | None
 
+    def uses_her(self, cfg: Config) -> bool:
+        """HER is on when asked for, or by default for goal-conditioned Dict environments."""
+        return self.goal_env if cfg.her is None else bool(cfg.her)
+
 
 def make_env(cfg: Config, render_mode: str | None = None) -> gym.Env:
     register_envs()
@@ -61,8 +64,7 @@ def inspect(env: gym.Env, cfg: Config) -> EnvSpec:
     act_dim = int(np.prod(env.action_space.shape))
     space = env.observation_space
     goal_env = isinstance(space, gym.spaces.Dict) and all(k in space.spaces for k in GOAL_KEYS)
-    use_her = goal_env if cfg.her is None else cfg.her
-    if use_her and not goal_env:
+    if cfg.her and not goal_env:
         raise MCRLError(f"her=true but {cfg.env_id} has no observation/achieved_goal/desired_goal Dict "
                         "observation: set --set her=false")
     if goal_env:

@@ -2,8 +2,12 @@
 
 Each frame shows the scene and, under it, the episode's per-step raw KL, normalised MC reward,
 extrinsic reward and success, with a cursor at the current step. The KL is computed by the MC module
-(`mcrl.mc`) from the recorded (s, a, s') of the very episode shown, with the run's own MC models, and
-normalised with the run's own normaliser history, exactly as the agent's reward would have been.
+(`mcrl.algo.mc`) from the recorded (s, a, s') of the very episode shown, with the run's own MC models, and
+mapped to the MC reward by `mcrl.algo.normaliser.mc_reward` with the run's own normaliser history, exactly
+as the agent's reward would have been.
+
+This is the glue between a run (its config and checkpoint, `mcrl.run`) and the video pieces
+(`gl`, `episode`, `timeline`, `encode`).
 """
 from __future__ import annotations
 
@@ -13,31 +17,46 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mcrl import normaliser
+from mcrl.algo import normaliser
+from mcrl.algo.mc import transition_kl
+from mcrl.algo.sac import Agent, TrainState
 from mcrl.config import Config
 from mcrl.envs import episode_seed, flatten_obs, to_env_action
 from mcrl.errors import MCRLError
-from mcrl.mc import transition_kl
-from mcrl.sac import Agent, TrainState
+from mcrl.run import checkpoint, rundir
+from mcrl.run.policy import load_policy
+from mcrl.video.encode import encode_gif, write_video
+from mcrl.video.episode import render_episode
+from mcrl.video.gl import check_renderer, make_render_env
+from mcrl.video.timeline import compose_episode
 
-_RENDER_STREAM = 2
+__all__ = ["mc_timeline", "record_episode", "record_training_video", "render_policy", "render_run"]
+
+_RENDER_STREAM = 2  # seed stream of rendered episodes (training uses 0, evaluation 1)
+FPS = 25.0
 
 
 def mc_timeline(cfg: Config, agent: Agent, state: TrainState, flat_obs: np.ndarray, actions: np.ndarray):
-    """Per-step raw KL and normalised MC reward of a trajectory: flat_obs (T+1, obs_dim), actions (T, act_dim)."""
+    """Per-step raw KL and normalised MC reward of a trajectory: flat_obs (T+1, obs_dim), actions (T, act_dim).
+
+    (None, None) for a run without MC models. The history is not updated: the reward is the one the
+    agent would give these transitions now.
+    """
     if state.mc is None:
         return None, None
     s = jnp.asarray(flat_obs[:-1, : agent.mc_dim])  # the KL needs the predictions only, not the observed s'
     kl = transition_kl(agent.mc_models.forward(state.mc, s, jnp.asarray(actions)))
-    lo, hi = normaliser.bounds(state.norm, cfg.min_percentile, cfg.max_percentile)
-    r_mc = normaliser.scale(kl, lo, hi, cfg.mc_reward_low, cfg.mc_reward_high)
+    r_mc, _ = normaliser.mc_reward(state.norm, kl, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
+                                   cfg.mc_reward_high)
     return np.asarray(kl, np.float64), np.asarray(r_mc, np.float64)
 
 
 def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int, act=None) -> dict:
-    """One deterministic episode, rendered, with its timeline series (`act`: a jitted deterministic policy)."""
-    from mcrl.video import render_episode
+    """One deterministic episode, rendered, with its timeline series (`act`: a jitted deterministic policy).
 
+    Returns :func:`mcrl.video.episode.render_episode`'s dict plus ``series`` (name -> (T,) array),
+    ``flat_obs`` (T+1, obs_dim) and ``policy_actions`` (T, act_dim), the actor's actions before scaling.
+    """
     act = act or jax.jit(agent.act_deterministic)
     policy_actions: list[np.ndarray] = []
 
@@ -63,11 +82,9 @@ def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int,
 
 
 def render_policy(cfg: Config, agent: Agent, state: TrainState, out_path: Path, episodes: int = 1,
-                  fmt: str = "mp4", fps: float = 25.0, seed_offset: int = 0, width: int | None = None,
+                  fmt: str = "mp4", fps: float = FPS, seed_offset: int = 0, width: int | None = None,
                   height: int | None = None) -> tuple[Path, list[dict], list[np.ndarray]]:
     """Render `episodes` deterministic episodes into one video; returns its path, the episodes, the frames."""
-    from mcrl.video import check_renderer, compose_episode, make_render_env, write_video
-
     check_renderer(cfg.env_id, **cfg.env_kwargs)
     env = make_render_env(cfg.env_id, width=width, height=height, **cfg.env_kwargs)
     frames, eps = [], []
@@ -83,31 +100,25 @@ def render_policy(cfg: Config, agent: Agent, state: TrainState, out_path: Path, 
 
 
 def render_run(run_dir: Path | str, episodes: int = 1, fmt: str = "mp4", checkpoint_step: int | None = None,
-               out: Path | str | None = None, fps: float = 25.0) -> Path:
-    from mcrl.trainer import load_policy
-
+               out: Path | str | None = None, fps: float = FPS) -> Path:
+    """`mcrl render`: video of a saved run's policy (default RUN_DIR/videos/policy_step<STEP>.<fmt>)."""
     if episodes < 1:
         raise MCRLError(f"--episodes {episodes}: render at least one episode")
     if fmt not in ("mp4", "gif"):
         raise MCRLError(f"--format {fmt}: choose mp4 or gif")
     cfg, agent, state = load_policy(run_dir, checkpoint_step)
-    step = int(_checkpoint_step(run_dir, checkpoint_step))
-    out = Path(out) if out else Path(run_dir) / "videos" / f"policy_step{step}.{fmt}"
-    out.parent.mkdir(parents=True, exist_ok=True)
+    step = int(checkpoint.load_meta(checkpoint.find(Path(run_dir), checkpoint_step))["step"])
+    out = Path(out) if out else rundir.video_path(run_dir, "policy", step, fmt)
     path, _, _ = render_policy(cfg, agent, state, out, episodes=episodes, fmt=fmt, fps=fps)
     return path
 
 
-def _checkpoint_step(run_dir, step):
-    from mcrl import checkpoint
-
-    return checkpoint.load_meta(checkpoint.find(Path(run_dir), step))["step"]
-
-
 def record_training_video(cfg: Config, agent: Agent, state: TrainState, run_dir: Path, step: int, log) -> Path:
-    """Called at evaluation time with `video_every`: keep the video in the run and send it to TensorBoard."""
-    out = Path(run_dir) / "videos" / f"eval_step{step}.mp4"
-    out.parent.mkdir(parents=True, exist_ok=True)
+    """Called at evaluation time with `video_every`: keep the video in the run and send it to TensorBoard.
+
+    `log` is the run's `mcrl.run.logger.RunLogger`; TensorBoard gets the episode as an animated GIF.
+    """
+    out = rundir.video_path(run_dir, "eval", step, "mp4")
     path, _, frames = render_policy(cfg, agent, state, out, episodes=1, fmt="mp4", seed_offset=step)
-    log.log_video("eval/video", frames, step)
+    log.log_gif("eval/video", encode_gif(frames, fps=FPS), step)
     return path

@@ -4,7 +4,7 @@ MC of a transition is KL( p(s'|s,a) || p(s'|a) ): how much the current state (th
 the next state beyond what the action alone tells. Both models are diagonal Gaussians, so the KL is
 closed-form. The same forward pass gives the models' NLL loss and the KL, so the agent pays for it once.
 
-Everything here is a pure function of arrays, used by the agent (`mcrl.sac`) and by `mcrl measure`.
+Everything here is a pure function of arrays, used by the agent (`mcrl.algo.sac`) and by `mcrl measure`.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from mcrl.networks import ActionModel, TransitionModel
+from mcrl.algo.networks import ActionModel, TransitionModel
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -47,7 +47,7 @@ class MCModels:
 
     state_dim: int
     hidden: tuple[int, ...]
-    init_scheme: str = "torch"  # see mcrl.networks
+    init_scheme: str = "torch"  # see mcrl.algo.networks
 
     @property
     def transition(self) -> TransitionModel:

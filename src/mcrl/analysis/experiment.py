@@ -1,34 +1,25 @@
-"""``mcrl report``: one self-contained report of an experiment (a sweep of runs over seeds).
+"""Loading an experiment directory for ``mcrl report``: its runs, and their grouping into configurations.
 
-Reads ``EXP/sweep.json`` and ``EXP/runs/<name>/`` (see docs/run-directory.md) and writes Markdown
-with PNG figures beside it, or one HTML file with the PNGs embedded. Works on a partial sweep:
-statistics of final values use finished runs only, learning curves use every run that has data,
-and a section lists the runs that are missing or unfinished.
+Reads ``EXP/sweep.json`` and ``EXP/runs/<name>/`` (docs/run-directory.md). Besides each run's
+``config.json``, ``eval.csv``, ``metrics.csv`` and ``done`` it reads:
 
-Besides each run's ``config.json``, ``eval.csv``, ``metrics.csv`` and ``done``, it reads:
+- ``final_eval.json`` ``{"step", "success_rate" (or null), "mean_return", "episodes"}``: the evaluation at
+  the end of training; a run's final numbers come from it, else from the last row of ``eval.csv``.
+- ``peer.json`` ``{"system": "stable-baselines3", "version": "2.9.2"}`` (optional ``"algorithm"``, default
+  ``"SAC"``): the run was trained by another system at the settings of its ``config.json``. Such runs are
+  reference arms, grouped by system and never with mcrl runs. Besides the runs sweep.json lists, directories
+  under ``EXP/runs/`` with a ``peer.json`` are read, and runs from other places can be added (``extra_runs``,
+  ``mcrl report --with DIR``). A peer run without ``done`` counts as finished once it has ``final_eval.json``.
+- ``EXP/provenance.json`` ``{"commit", "machine", "command", "rerun_one_seed"}``.
 
-- ``final_eval.json`` ``{"step": int, "success_rate": float | null, "mean_return": float,
-  "episodes": int}``: the evaluation at the end of training; a run's final numbers come from it,
-  else from the last row of ``eval.csv``.
-- ``peer.json`` ``{"system": "stable-baselines3", "version": "2.9.2"}`` (optional ``"algorithm"``,
-  default ``"SAC"``): the run was trained by another system at the settings of its ``config.json``.
-  Such runs are reference arms, grouped by system and never with mcrl runs. Besides the runs
-  sweep.json lists, directories under ``EXP/runs/`` with a ``peer.json`` are read, and runs from
-  other places can be added (``extra_runs``, ``mcrl report --with DIR``). A peer run without a
-  ``done`` file counts as finished once it has ``final_eval.json``.
-- ``EXP/provenance.json`` ``{"commit", "machine", "command", "rerun_one_seed"}``: printed at the top.
-
-Runs are grouped into configurations by every config key that differs between them, except the
-keys that only name, place or save a run (:data:`NOT_CONFIGURATION`).
+Runs are grouped into configurations by every config key that differs between them, except the keys that
+only name, place or save a run (:data:`NOT_CONFIGURATION`).
 """
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,16 +27,13 @@ from typing import Any, Literal
 
 import numpy as np
 
+from mcrl.analysis.plots import has_data
+from mcrl.config import Config
 from mcrl.errors import MCRLError
-from mcrl.plots import has_data, read_csv
-from mcrl.report_sections import (  # noqa: F401 - THESIS_* and thesis_experiment are part of this module's API
-    THESIS_PRESET_PREFIXES,
-    THESIS_RESULTS,
-    Block,
-    build_report,
-    thesis_experiment,
-)
-from mcrl.stats import MIN_SEEDS_FOR_VERDICT  # noqa: F401 - re-exported: the report states it
+from mcrl.run.rundir import (CONFIG, EVAL, FINAL_EVAL, METRICS, PEER, RUNS, SWEEP_JSON, is_done, read_columns,
+                             read_json)
+
+PROVENANCE = "provenance.json"  # EXP/provenance.json, written by whoever ran the experiment
 
 # Config keys that name, place or only save a run (not what it trains or how it is evaluated): runs
 # that differ only in these are seeds of one configuration.
@@ -162,6 +150,8 @@ class ConfigGroup:
 
 @dataclass
 class Experiment:
+    """An experiment directory: its runs, and the configurations they form."""
+
     dir: Path
     preset: str
     runs: list[Run]
@@ -171,45 +161,39 @@ class Experiment:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        obj = json.loads(path.read_text())
-    except OSError:
-        return {}
-    except ValueError as e:
-        raise MCRLError(f"{path} is not valid JSON ({e}): fix or delete it and re-run that step") from e
-    return obj if isinstance(obj, dict) else {}
+    return read_json(path, strict=True)  # a damaged run or sweep.json is an error, not a silently missing run
 
 
 def _read_run(rd: Path, name: str, config_key: str | None, seed: Any, overrides: dict[str, Any],
               source: Path) -> Run:
-    peer = _read_json(rd / "peer.json") or None
-    final_eval = _read_json(rd / "final_eval.json")
-    done = (rd / "done").exists() or (peer is not None and bool(final_eval))
+    peer = _read_json(rd / PEER) or None
+    final_eval = _read_json(rd / FINAL_EVAL)
+    done = is_done(rd) or (peer is not None and bool(final_eval))
     status = "finished" if done else ("partial" if rd.is_dir() else "missing")
-    config = _read_json(rd / "config.json")
+    config = _read_json(rd / CONFIG)
     if seed is None and isinstance(config.get("seed"), int):
         seed = config["seed"]
     return Run(name=name, config_key=config_key, seed=seed, dir=rd, status=status, config=config,
-               overrides=overrides, eval=read_csv(rd / "eval.csv"), metrics=read_csv(rd / "metrics.csv"),
+               overrides=overrides, eval=read_columns(rd / EVAL), metrics=read_columns(rd / METRICS),
                final_eval=final_eval, peer=peer, source=source)
 
 
 def _is_run_dir(d: Path) -> bool:
-    return d.is_dir() and any((d / f).is_file() for f in ("config.json", "eval.csv", "peer.json"))
+    return d.is_dir() and any((d / f).is_file() for f in (CONFIG, EVAL, PEER))
 
 
 def _sweep_runs(d: Path, prefix: str = "") -> tuple[dict[str, Any], list[Run]]:
     """sweep.json of experiment ``d`` and its runs: those it lists, then unlisted peer runs under runs/."""
-    sweep = _read_json(d / "sweep.json")
+    sweep = _read_json(d / SWEEP_JSON)
     entries = sweep.get("runs") or []
     if not entries:
         raise MCRLError(f"{d / 'sweep.json'} lists no runs: re-create the experiment with `mcrl sweep`")
-    runs = [_read_run(d / "runs" / str(e["name"]), prefix + str(e["name"]), str(e.get("config_key") or e["name"]),
+    runs = [_read_run(d / RUNS / str(e["name"]), prefix + str(e["name"]), str(e.get("config_key") or e["name"]),
                       e.get("seed"), dict(e.get("overrides") or {}), d) for e in entries]
     listed = {str(e["name"]) for e in entries}
-    if (d / "runs").is_dir():
-        for rd in sorted((d / "runs").iterdir()):
-            if rd.name not in listed and (rd / "peer.json").is_file():
+    if (d / RUNS).is_dir():
+        for rd in sorted((d / RUNS).iterdir()):
+            if rd.name not in listed and (rd / PEER).is_file():
                 runs.append(_read_run(rd, prefix + rd.name, None, None, {}, d))
     return sweep, runs
 
@@ -219,7 +203,7 @@ def _extra_runs(path: Path) -> list[Run]:
     if not path.is_dir():
         raise MCRLError(f"--with {path}: no such directory: give an experiment directory, a run directory "
                         "or a directory of run directories")
-    if (path / "sweep.json").is_file():
+    if (path / SWEEP_JSON).is_file():
         return _sweep_runs(path, prefix=f"{path.name}/")[1]
     if _is_run_dir(path):
         return [_read_run(path, path.name, None, None, {}, path.parent)]
@@ -238,7 +222,7 @@ def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path]
     if not d.is_dir():
         raise MCRLError(f"experiment directory {d} does not exist: pass the directory `mcrl sweep` wrote "
                         "(the one holding sweep.json)")
-    if not (d / "sweep.json").is_file():
+    if not (d / SWEEP_JSON).is_file():
         raise MCRLError(f"{d} has no sweep.json: pass the experiment directory `mcrl sweep` wrote "
                         "(for a single run use `mcrl plot RUN_DIR`)")
     sweep, runs = _sweep_runs(d)
@@ -254,7 +238,7 @@ def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path]
         raise MCRLError(f"no run in {d} has written an evaluation yet ({started} of {len(runs)} runs started): "
                         "wait for the first evaluation (eval.csv), then run `mcrl report` again")
     preset = str(sweep.get("preset") or next((r.config["preset"] for r in runs if r.config.get("preset")), ""))
-    return Experiment(d, preset, runs, group_runs(runs), _read_json(d / "provenance.json"), extra)
+    return Experiment(d, preset, runs, group_runs(runs), _read_json(d / PROVENANCE), extra)
 
 
 # ------------------------------------------------------------------------------------ grouping
@@ -265,8 +249,6 @@ def _settings(config: dict[str, Any]) -> dict[str, Any] | None:
     (so a key left out equals its default), without :data:`NOT_CONFIGURATION`. None without config.json."""
     if not config:
         return None
-    from mcrl.config import Config  # noqa: PLC0415 - only needed here
-
     try:
         full = Config.from_run_json(config).to_dict()
     except (MCRLError, TypeError, ValueError):
@@ -366,92 +348,3 @@ def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
     groups.sort(key=lambda g: (g.peer is not None, g.mc_alpha is None, g.mc_alpha or 0.0, g.key))
     return groups
 
-
-# --------------------------------------------------------------------------------- rendering
-
-
-def _md_cell(s: str) -> str:
-    return s.replace("|", "\\|").replace("\n", " ")
-
-
-def _to_markdown(blocks: Sequence[Block], out_dir: Path) -> str:
-    parts = []
-    for b in blocks:
-        if b[0] == "h":
-            parts.append(f"{'#' * b[1]} {b[2]}")
-        elif b[0] == "p":
-            parts.append(b[1])
-        elif b[0] == "ul":
-            parts.append("\n".join(f"- {item}" for item in b[1]))
-        elif b[0] == "table":
-            head, rows = b[1], b[2]
-            lines = ["| " + " | ".join(map(_md_cell, head)) + " |", "|" + "---|" * len(head)]
-            lines += ["| " + " | ".join(map(_md_cell, row)) + " |" for row in rows]
-            parts.append("\n".join(lines))
-        elif b[0] == "fig":
-            (out_dir / b[1]).write_bytes(b[2])
-            parts.append(f"![{b[3]}]({b[1]})\n\n*{b[3]}*")
-    return "\n\n".join(parts) + "\n"
-
-
-def _inline_html(s: str) -> str:
-    """Escape, then the little Markdown the report uses: `code`, **bold**, [text](#anchor)."""
-    s = html.escape(s, quote=False)
-    s = re.sub(r"`([^`]+)`", r"<code>\1</code>", s)
-    s = re.sub(r"\*\*([^*]+)\*\*", r"<strong>\1</strong>", s)
-    return re.sub(r"\[([^\]]+)\]\((#[^)]+)\)", r'<a href="\2">\1</a>', s)
-
-
-def _slug(text: str) -> str:
-    return re.sub(r"[^a-z0-9 -]", "", text.lower()).strip().replace(" ", "-")
-
-
-_CSS = ("body{font-family:sans-serif;max-width:70em;margin:2em auto;padding:0 1em;line-height:1.4}"
-        "table{border-collapse:collapse;margin:1em 0}th,td{border:1px solid #ccc;padding:.3em .6em;text-align:left}"
-        "th{background:#f3f3f3}img{max-width:100%}code{background:#f3f3f3;padding:0 .2em}figcaption{font-style:italic}")
-
-
-def _to_html(blocks: Sequence[Block], title: str) -> str:
-    parts = [f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-             f"<style>{_CSS}</style></head><body>"]
-    for b in blocks:
-        if b[0] == "h":
-            parts.append(f"<h{b[1]} id='{_slug(b[2])}'>{_inline_html(b[2])}</h{b[1]}>")
-        elif b[0] == "p":
-            parts.append(f"<p>{_inline_html(b[1])}</p>")
-        elif b[0] == "ul":
-            parts.append("<ul>" + "".join(f"<li>{_inline_html(i)}</li>" for i in b[1]) + "</ul>")
-        elif b[0] == "table":
-            head = "".join(f"<th>{_inline_html(h)}</th>" for h in b[1])
-            body = "".join("<tr>" + "".join(f"<td>{_inline_html(c)}</td>" for c in row) + "</tr>" for row in b[2])
-            parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
-        elif b[0] == "fig":
-            data = base64.b64encode(b[2]).decode("ascii")
-            parts.append(f"<figure><img alt='{html.escape(b[3])}' src='data:image/png;base64,{data}'>"
-                         f"<figcaption>{_inline_html(b[3])}</figcaption></figure>")
-    return "\n".join(parts) + "\n</body></html>\n"
-
-
-def write_report(experiment_dir: str | Path, out_dir: str | Path | None = None,
-                 fmt: Literal["md", "html"] = "md", extra_runs: Sequence[str | Path] = ()) -> Path:
-    """Write the report of an experiment directory; returns the report file's path.
-
-    ``fmt="md"``: ``OUT/report.md`` with its PNG figures beside it; ``fmt="html"``: one
-    self-contained ``OUT/report.html`` (figures embedded). ``out_dir`` defaults to ``EXP/report``.
-    ``extra_runs``: more runs to include (see :func:`load_experiment`), e.g. reference arms.
-    Raises MCRLError when the directory does not exist, has no sweep.json, lists no runs, or no
-    run has evaluated yet.
-    """
-    if fmt not in ("md", "html"):
-        raise MCRLError(f"unknown report format {fmt!r}: use --format md or --format html")
-    exp = load_experiment(experiment_dir, extra_runs)
-    blocks = build_report(exp)  # before creating OUT: a failing section leaves nothing behind
-    out = Path(out_dir) if out_dir is not None else exp.dir / "report"
-    out.mkdir(parents=True, exist_ok=True)
-    if fmt == "md":
-        path = out / "report.md"
-        path.write_text(_to_markdown(blocks, out))
-    else:
-        path = out / "report.html"
-        path.write_text(_to_html(blocks, f"mcrl report: {exp.dir.name}"))
-    return path

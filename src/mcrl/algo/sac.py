@@ -18,32 +18,46 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from mcrl import normaliser
+from mcrl.algo import normaliser
 from mcrl.config import Config
-from mcrl.mc import MCModels, transition_kl
-from mcrl.networks import GaussianHead, TwinCritic
+from mcrl.algo.mc import MCModels, transition_kl
+from mcrl.algo.networks import GaussianHead, TwinCritic
 
-METRICS = ("actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean", "transition_model_loss",
-           "action_model_loss", "mean_ext_reward", "mean_mc_reward", "mean_total_reward", "mean_raw_kl")
-MC_METRICS = ("transition_model_loss", "action_model_loss", "mean_mc_reward", "mean_raw_kl")
+from mcrl.algo.metrics import MC_METRICS, UPDATE_METRICS as METRICS
+
+
+class Learned(NamedTuple):
+    """Parameters and their optimiser state, kept together (flax's TrainState without the methods)."""
+
+    params: Any
+    opt: Any
 
 
 class TrainState(NamedTuple):
-    actor: Any
-    critic: Any
-    critic_target: Any
-    log_ent_coef: jax.Array
-    actor_opt: Any
-    critic_opt: Any
-    ent_opt: Any
-    mc: Any  # None without MC models
-    mc_opt: Any
+    pi: Learned  # the actor
+    q: Learned  # the twin critics
+    q_target: Any  # polyak-averaged critic parameters
+    ent: Learned  # log of the entropy coefficient
+    mc_models: Learned | None  # transition and action-only models; None without MC models
     norm: Any  # normaliser.NormaliserState, None without MC models
     key: jax.Array
     grad_steps: jax.Array
     metric_sums: dict  # name -> float32 sum since the last read
     metric_count: jax.Array
     bounds: jax.Array  # (2,) last normaliser bounds
+
+    # the parameters alone, as acting, evaluation and videos need them
+    @property
+    def actor(self):
+        return self.pi.params
+
+    @property
+    def critic(self):
+        return self.q.params
+
+    @property
+    def mc(self):
+        return None if self.mc_models is None else self.mc_models.params
 
 
 class Batch(NamedTuple):
@@ -98,15 +112,15 @@ class Agent:
         actor = self.actor_net.init(k_actor, obs)["params"]
         critic = self.critic_net.init(k_critic, obs, act)["params"]
         log_ent = jnp.log(jnp.float32(self.cfg.ent_coef_init))
-        mc = mc_opt = norm = None
+        mc_models = norm = None
         if self.cfg.use_mc_models:
             mc = self.mc_models.init(k_mc, self.act_dim)
-            mc_opt = self._opt(self.cfg.mc_lr).init(mc)
+            mc_models = Learned(mc, self._opt(self.cfg.mc_lr).init(mc))
             norm = normaliser.init(self.cfg.mc_history_values)
         lr = self.cfg.learning_rate
-        return TrainState(actor=actor, critic=critic, critic_target=jax.tree.map(jnp.copy, critic), log_ent_coef=log_ent,
-                          actor_opt=self._opt(lr).init(actor), critic_opt=self._opt(lr).init(critic),
-                          ent_opt=self._opt(lr).init(log_ent), mc=mc, mc_opt=mc_opt, norm=norm, key=k_state,
+        return TrainState(pi=Learned(actor, self._opt(lr).init(actor)), q=Learned(critic, self._opt(lr).init(critic)),
+                          q_target=jax.tree.map(jnp.copy, critic), ent=Learned(log_ent, self._opt(lr).init(log_ent)),
+                          mc_models=mc_models, norm=norm, key=k_state,
                           grad_steps=jnp.int32(0), metric_sums={m: jnp.float32(0) for m in METRICS},
                           metric_count=jnp.int32(0), bounds=jnp.zeros(2, jnp.float32))
 
@@ -131,33 +145,36 @@ class Agent:
             norm = normaliser.push(state.norm, kl[:1])  # one history value per step, as its code appended
         else:
             norm = normaliser.push(state.norm, kl)
-        lo, hi = normaliser.bounds(norm, cfg.min_percentile, cfg.max_percentile)
-        r_mc = normaliser.scale(kl, lo, hi, cfg.mc_reward_low, cfg.mc_reward_high)
+        r_mc, (lo, hi) = normaliser.mc_reward(norm, kl, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
+                                              cfg.mc_reward_high)
         return r_mc, kl, norm, jnp.stack([lo, hi]), grads, lt, la
 
     # ------------------------------------------------------------------ one gradient step
+    def _adam(self, learned: Learned, grads, lr: float) -> Learned:
+        upd, opt = self._opt(lr).update(grads, learned.opt, learned.params)
+        return Learned(optax.apply_updates(learned.params, upd), opt)
+
     def update(self, state: TrainState, batch: Batch) -> TrainState:
         cfg = self.cfg
         key, k_pi, k_next = jax.random.split(state.key, 3)
         m: dict[str, jax.Array] = {}
 
         reward = batch.reward
-        mc, mc_opt, norm, bounds = state.mc, state.mc_opt, state.norm, state.bounds
+        mc_models, norm, bounds = state.mc_models, state.norm, state.bounds
         if cfg.use_mc_models:
             r_mc, kl, norm, bounds, mc_grads, lt, la = self.mc_reward(state, batch)
             if cfg.mc_alpha > 0:
                 reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * r_mc
-            upd, mc_opt = self._opt(cfg.mc_lr).update(mc_grads, state.mc_opt, state.mc)
-            mc = optax.apply_updates(state.mc, upd)
+            mc_models = self._adam(state.mc_models, mc_grads, cfg.mc_lr)
             m.update(transition_model_loss=lt, action_model_loss=la, mean_mc_reward=r_mc.mean(),
                      mean_raw_kl=kl.mean())
 
-        ent_coef = jnp.exp(state.log_ent_coef)
+        ent_coef = jnp.exp(state.ent.params)
 
         # critics
         mean_n, log_std_n = self.actor_net.apply({"params": state.actor}, batch.next_obs)
         a_next, logp_next = tanh_gaussian_sample(mean_n, log_std_n, k_next)
-        q_next = self.critic_net.apply({"params": state.critic_target}, batch.next_obs, a_next).min(0)
+        q_next = self.critic_net.apply({"params": state.q_target}, batch.next_obs, a_next).min(0)
         target = reward + (1.0 - batch.terminated) * cfg.gamma * (q_next - ent_coef * logp_next)
         target = jax.lax.stop_gradient(target)
 
@@ -166,35 +183,31 @@ class Agent:
             return 0.5 * jnp.square(q - target[None]).mean(-1).sum(), q.mean()
 
         (critic_loss, q_mean), g = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.critic)
-        upd, critic_opt = self._opt(cfg.learning_rate).update(g, state.critic_opt, state.critic)
-        critic = optax.apply_updates(state.critic, upd)
+        q = self._adam(state.q, g, cfg.learning_rate)
 
         # actor (against the updated critics, as stable-baselines3 does)
         def actor_loss_fn(params):
             mean, log_std = self.actor_net.apply({"params": params}, batch.obs)
             a_pi, logp = tanh_gaussian_sample(mean, log_std, k_pi)
-            q_pi = self.critic_net.apply({"params": critic}, batch.obs, a_pi).min(0)
+            q_pi = self.critic_net.apply({"params": q.params}, batch.obs, a_pi).min(0)
             return (ent_coef * logp - q_pi).mean(), logp
 
         (actor_loss, logp), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.actor)
-        upd, actor_opt = self._opt(cfg.learning_rate).update(g, state.actor_opt, state.actor)
-        actor = optax.apply_updates(state.actor, upd)
+        pi = self._adam(state.pi, g, cfg.learning_rate)
 
         # entropy coefficient, from the same (pre-update) policy sample
         ent_target = jax.lax.stop_gradient(logp + self.target_entropy)
-        ent_loss, g = jax.value_and_grad(lambda le: -(le * ent_target).mean())(state.log_ent_coef)
-        upd, ent_opt = self._opt(cfg.learning_rate).update(g, state.ent_opt, state.log_ent_coef)
-        log_ent_coef = optax.apply_updates(state.log_ent_coef, upd)
+        ent_loss, g = jax.value_and_grad(lambda le: -(le * ent_target).mean())(state.ent.params)
+        ent = self._adam(state.ent, g, cfg.learning_rate)
 
-        critic_target = optax.incremental_update(critic, state.critic_target, cfg.tau)
+        q_target = optax.incremental_update(q.params, state.q_target, cfg.tau)
 
         m.update(actor_loss=actor_loss, critic_loss=critic_loss, ent_coef=ent_coef, ent_coef_loss=ent_loss,
                  q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean())
         sums = {k: state.metric_sums[k] + m.get(k, 0.0) for k in METRICS}
-        return TrainState(actor=actor, critic=critic, critic_target=critic_target, log_ent_coef=log_ent_coef,
-                          actor_opt=actor_opt, critic_opt=critic_opt, ent_opt=ent_opt, mc=mc, mc_opt=mc_opt,
-                          norm=norm, key=key, grad_steps=state.grad_steps + 1, metric_sums=sums,
-                          metric_count=state.metric_count + 1, bounds=bounds)
+        return TrainState(pi=pi, q=q, q_target=q_target, ent=ent, mc_models=mc_models, norm=norm, key=key,
+                          grad_steps=state.grad_steps + 1, metric_sums=sums, metric_count=state.metric_count + 1,
+                          bounds=bounds)
 
     def read_metrics(self, state: TrainState) -> tuple[dict[str, float], TrainState]:
         """Means since the last read (host side), and the state with the sums reset."""

@@ -163,7 +163,7 @@ def bootstrap_backend() -> str:
     """Which stratified bootstrap :func:`stratified_iqm_ci` and :func:`probability_of_improvement` use."""
     if _rliable_library() is not None:
         return "rliable.library.get_interval_estimates"
-    return "mcrl.stats numpy stratified bootstrap (rliable.library unavailable: arch does not import)"
+    return "mcrl.analysis.stats numpy stratified bootstrap (rliable.library unavailable: arch does not import)"
 
 
 @contextlib.contextmanager

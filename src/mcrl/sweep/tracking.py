@@ -3,7 +3,7 @@
 One MLflow experiment per sweep, one MLflow run per mcrl run (named like the run), logged by the
 sweep driver when the run finishes: params = the resolved config, metrics = the series of
 metrics.csv (column names as they are) and eval.csv (``eval/success_rate``, ``eval/mean_return``)
-with their env steps, artifacts = the run's learning-curve plot (``mcrl.plots.plot_run``), its
+with their env steps, artifacts = the run's learning-curve plot (``mcrl.analysis.plots.plot_run``), its
 config.json and the two CSVs.
 
 Default store: SQLite inside the experiment directory (``sqlite:////abs/EXP/mlflow.db``, artifacts
@@ -13,12 +13,9 @@ it is probed before the sweep writes anything.
 """
 from __future__ import annotations
 
-import contextlib
-import csv
 import json
 import logging
 import math
-import os
 import re
 import socket
 import tempfile
@@ -28,6 +25,9 @@ from typing import Any
 from urllib.parse import urlparse
 
 from mcrl.errors import MCRLError
+from mcrl.run import rundir
+from mcrl.sweep.plan import RunPlan
+from mcrl.sweep.worker import patched_environ
 
 RUN_TAG = "mcrl.run_name"
 SWEEP_TAG = "mcrl.sweep_id"
@@ -57,21 +57,6 @@ def _import_mlflow():
     return MlflowClient
 
 
-@contextlib.contextmanager
-def patched_environ(env: dict[str, str]):
-    """Set environment variables for the duration of the block, then restore them."""
-    old = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def _no_retries():
     """MLflow retries HTTP requests with backoff for minutes; a probe must answer in seconds."""
     return patched_environ({"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "0", "MLFLOW_HTTP_REQUEST_TIMEOUT": "10"})
@@ -86,21 +71,9 @@ def _param_value(v: Any) -> str:
     return v if isinstance(v, str) else json.dumps(v)
 
 
-def _read_rows(path: Path) -> list[dict[str, str]]:
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def _num(cell: str | None) -> float | None:
-    if cell in (None, ""):
-        return None
-    try:
-        v = float(cell)
-    except ValueError:
-        return None
-    return v if math.isfinite(v) else None
+def _finite(v: float | None) -> float | None:
+    """A CSV cell as MLflow takes it: NaN and infinities are left out, like empty cells."""
+    return v if v is not None and math.isfinite(v) else None
 
 
 class Tracker:
@@ -181,18 +154,19 @@ class Tracker:
     def is_logged(self, name: str) -> bool:
         return any(r.info.status == "FINISHED" for r in self._runs_named(name))
 
-    def log_run(self, run, run_dir: Path) -> str:
-        """Log one finished mcrl run (a sweep.RunPlan) from its directory; returns the MLflow run id.
+    def log_run(self, run: RunPlan, run_dir: Path) -> str:
+        """Log one finished mcrl run from its directory; returns the MLflow run id.
         A half-logged earlier attempt (the sweep was killed while logging) is replaced."""
         from mlflow.entities import Metric, Param
 
         client = self.client
+        run_dir = Path(run_dir)
         for old in self._runs_named(run.name):
             if old.info.status == "FINISHED":
                 return old.info.run_id
             client.delete_run(old.info.run_id)
-        cfg_path = Path(run_dir) / "config.json"
-        config = json.loads(cfg_path.read_text()) if cfg_path.is_file() else run.config.to_dict()
+        # the config the run was trained with (the plan's, should the run directory have none)
+        config = (rundir.read_config(run_dir) if (run_dir / rundir.CONFIG).is_file() else run.config).to_dict()
         tags = {RUN_TAG: run.name, SWEEP_TAG: self.sweep_id or "", "mcrl.config_key": run.config_key,
                 "mcrl.seed": str(run.seed), "mcrl.run_dir": str(Path(run_dir).absolute())}
         mlrun = client.create_run(self.experiment_id, run_name=run.name, tags=tags)
@@ -204,32 +178,32 @@ class Tracker:
                 client.log_batch(rid, params=params[i:i + _PARAM_BATCH])
             ts = int(time.time() * 1000)
             metrics = []
-            for row in _read_rows(Path(run_dir) / "metrics.csv"):
-                step = _num(row.get("step"))
+            for row in rundir.read_rows(run_dir / rundir.METRICS):
+                step = _finite(row.get("step"))
                 if step is None:
                     continue
                 for k, cell in row.items():
-                    v = _num(cell)
+                    v = _finite(cell)
                     if k != "step" and v is not None:
                         metrics.append(Metric(_metric_key(k), v, ts, int(step)))
-            for row in _read_rows(Path(run_dir) / "eval.csv"):
-                step = _num(row.get("step"))
+            for row in rundir.read_rows(run_dir / rundir.EVAL):
+                step = _finite(row.get("step"))
                 if step is None:
                     continue
                 for k in ("success_rate", "mean_return"):
-                    v = _num(row.get(k))
+                    v = _finite(row.get(k))
                     if v is not None:
                         metrics.append(Metric(f"eval/{k}", v, ts, int(step)))
             for i in range(0, len(metrics), _BATCH):
                 client.log_batch(rid, metrics=metrics[i:i + _BATCH])
-            for f in ("config.json", "metrics.csv", "eval.csv"):
-                if (Path(run_dir) / f).is_file():
-                    client.log_artifact(rid, str(Path(run_dir) / f))
-            for video in sorted((Path(run_dir) / "videos").glob("*.mp4")):  # from `--set video_every=N`
-                client.log_artifact(rid, str(video), artifact_path="videos")
+            for f in (rundir.CONFIG, rundir.METRICS, rundir.EVAL):
+                if (run_dir / f).is_file():
+                    client.log_artifact(rid, str(run_dir / f))
+            for video in sorted((run_dir / rundir.VIDEOS).glob("*.mp4")):  # from `--set video_every=N`
+                client.log_artifact(rid, str(video), artifact_path=rundir.VIDEOS)
             with tempfile.TemporaryDirectory(prefix="mcrl-plot-") as tmp:
                 try:
-                    from mcrl.plots import plot_run
+                    from mcrl.analysis.plots import plot_run  # matplotlib and scipy: only when logging a run
 
                     png = plot_run(run_dir, Path(tmp) / "curves.png")
                     client.log_artifact(rid, str(png))

@@ -1,4 +1,4 @@
-"""The sections of ``mcrl report``, as blocks that :mod:`mcrl.report` renders to Markdown or HTML.
+"""The sections of ``mcrl report``: tables, figures and verdicts, as blocks (:mod:`mcrl.analysis.markdown`).
 
 Every reading of a result (a difference between configurations, a thesis claim borne out or not)
 is drawn only when each configuration it compares has at least ``MIN_SEEDS_FOR_VERDICT`` finished
@@ -10,12 +10,13 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mcrl.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
-from mcrl.stats import (
+from mcrl.analysis.experiment import ConfigGroup, Experiment, Run
+from mcrl.analysis.markdown import Block
+from mcrl.analysis.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
+from mcrl.analysis.stats import (
     MIN_SEEDS_FOR_VERDICT,
     Interval,
     align_curves,
@@ -26,47 +27,11 @@ from mcrl.stats import (
     seeds_to_detect,
     stratified_iqm_ci,
 )
-
-if TYPE_CHECKING:
-    from mcrl.report import ConfigGroup, Experiment, Run
-
-# Thesis chapter 4 (Tables 4.2-4.5; /work/shared/FACTS.md). "variance" is the thesis' "Variance of
-# Success Rate" (its definition is not stated there); "mean_reward" its "Mean Reward", which in
-# range matches a mean evaluation-episode return (FetchPush: 50 steps of -1/0).
-THESIS_RESULTS: dict[str, dict[str, Any]] = {
-    "FetchPush": {
-        "tables": "Tables 4.2 and 4.3",
-        "total_steps": 150_000,
-        "seeds": 6,
-        "by_alpha": {
-            0.0: {"success_mean": 0.52, "success_var": 0.2, "mean_reward": -31.3},
-            0.2: {"success_mean": 0.75, "success_var": 0.2, "mean_reward": -23.0},
-        },
-        "caveat": "The thesis also reports alpha 0.4 and 0.6 about equal to SAC and 0.8, 1.0 below it, "
-                  "without table values.",
-    },
-    "AntMaze": {
-        "tables": "Tables 4.4 and 4.5",
-        "total_steps": 400_000,
-        "seeds": 4,
-        "by_alpha": {
-            0.0: {"success_mean": 0.38, "success_var": 0.14, "mean_reward": 155.3},
-            0.2: {"success_mean": 0.52, "success_var": 0.16, "mean_reward": 206.5},
-        },
-        "caveat": "The thesis ran its own AntGym maze (action scale 0.4, map not recoverable from the "
-                  "text); mcrl's dense UMaze is a public stand-in, so the task itself differs.",
-    },
-}
-# Preset name prefix (lower case) -> THESIS_RESULTS key.
-THESIS_PRESET_PREFIXES: dict[str, str] = {"fetchpush": "FetchPush", "antmaze": "AntMaze"}
+from mcrl.analysis.thesis import THESIS_RESULTS, thesis_experiment
 
 CONF = 0.95
 SEED = 0  # every bootstrap in a report uses it: the same runs give the same report
 ALPHA, POWER = 0.05, 0.8  # of the minimum detectable difference
-
-# Blocks the report is made of, rendered to Markdown or HTML:
-# ("h", level, text) | ("p", text) | ("ul", [text]) | ("table", headers, rows) | ("fig", file, png, caption)
-Block = tuple[Any, ...]
 
 
 # ------------------------------------------------------------------------------- formatting
@@ -322,12 +287,6 @@ def _detectable(exp: Experiment) -> list[Block]:
         ("table", ["comparison", "seeds X / Y", "sd of final success X / Y", "observed difference X - Y",
                    "minimum detectable difference", "seeds each to detect the observed difference"], rows),
     ]
-
-
-def thesis_experiment(preset: str) -> str | None:
-    """The THESIS_RESULTS key a preset reproduces, by name prefix; None if it matches none."""
-    p = preset.lower()
-    return next((v for k, v in THESIS_PRESET_PREFIXES.items() if p.startswith(k)), None)
 
 
 def _verdict(what: str, thesis: float, ours: float, ci: tuple[float, float] | None, n: int, digits: int) -> str:

@@ -156,6 +156,13 @@ def scale(values, low_bound, high_bound, reward_low: float, reward_high: float):
     return reward_low + unit * (reward_high - reward_low)
 
 
+def mc_reward(state: NormaliserState, kl, min_percentile: float, max_percentile: float, reward_low: float,
+              reward_high: float):
+    """The MC reward of raw KL values under the history in `state`: (reward, (low bound, high bound))."""
+    lo, hi = bounds(state, min_percentile, max_percentile)
+    return scale(kl, lo, hi, reward_low, reward_high), (lo, hi)
+
+
 def reference_percentile(history: np.ndarray, q: float) -> float:
     """Plain numpy reference, used by tests and documentation."""
     return float(np.percentile(np.maximum(history, 0.0), q))

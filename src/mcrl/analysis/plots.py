@@ -6,9 +6,7 @@ Agg, needs no display and leaves matplotlib's global backend alone.
 
 from __future__ import annotations
 
-import csv
 import io
-import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -18,38 +16,11 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
+from mcrl.analysis.stats import DEFAULT_N_BOOT, mean_ci_band
 from mcrl.errors import MCRLError
-from mcrl.stats import DEFAULT_N_BOOT, mean_ci_band
+from mcrl.run.rundir import CONFIG, EVAL, METRICS, is_done, read_columns, read_json
 
 COLORS = [f"C{i}" for i in range(10)]
-
-
-def read_csv(path: str | Path) -> dict[str, np.ndarray]:
-    """Columns of a run's CSV as float arrays; empty or non-numeric cells are NaN.
-
-    A missing file, or one with only a header, gives empty columns (or ``{}``), so callers can
-    treat "not written yet" and "no rows yet" alike.
-    """
-    p = Path(path)
-    if not p.is_file():
-        return {}
-    with p.open(newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        if header is None:
-            return {}
-        rows = [r for r in reader if r]
-
-    def num(cell: str) -> float:
-        try:
-            return float(cell)
-        except ValueError:
-            return math.nan
-
-    cols: dict[str, np.ndarray] = {}
-    for j, name in enumerate(header):
-        cols[name.strip()] = np.array([num(r[j]) if j < len(r) else math.nan for r in rows], dtype=float)
-    return cols
 
 
 def has_data(cols: Mapping[str, np.ndarray], name: str) -> bool:
@@ -131,7 +102,7 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
     run = Path(run_dir)
     if not run.is_dir():
         raise MCRLError(f"run directory {run} does not exist: pass a directory written by `mcrl train`")
-    ev, mt = read_csv(run / "eval.csv"), read_csv(run / "metrics.csv")
+    ev, mt = read_columns(run / EVAL), read_columns(run / METRICS)
     if not (has_data(ev, "step") or has_data(mt, "step")):
         raise MCRLError(f"{run} has no eval.csv or metrics.csv rows yet: wait for the run's first log "
                         "interval, or pass a run directory written by `mcrl train`")
@@ -149,9 +120,9 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
             panels.append((title, ylabel, series, logy))
 
     fig, axes = panel_grid(len(panels))
-    cfg = _read_json(run / "config.json")
+    cfg = read_json(run / CONFIG)  # {} when unreadable: a plot must not fail on it
     fig.suptitle(f"{run.name}  ({cfg.get('preset', '?')}, mc_alpha={cfg.get('mc_alpha', '?')}, "
-                 f"seed={cfg.get('seed', '?')}){'' if (run / 'done').exists() else '  [unfinished]'}",
+                 f"seed={cfg.get('seed', '?')}){'' if is_done(run) else '  [unfinished]'}",
                  fontsize=11)
     for ax, (title, ylabel, series, logy) in zip(axes, panels):
         for k, (steps, values, label, ls) in enumerate(series):
@@ -164,15 +135,6 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
     return out
 
 
-def _read_json(path: Path) -> dict[str, Any]:
-    """A JSON object from ``path``, or {} when it is missing or unreadable (plots must not fail on it)."""
-    try:
-        obj = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return obj if isinstance(obj, dict) else {}
-
-
 def figure_to_png(fig: Figure, path: str | Path | None = None, dpi: int = 100) -> bytes:
     """Render ``fig`` to PNG bytes (and write them to ``path`` when given)."""
     buf = io.BytesIO()
@@ -183,5 +145,4 @@ def figure_to_png(fig: Figure, path: str | Path | None = None, dpi: int = 100) -
     return data
 
 
-__all__ = ["plot_run", "plot_curves_with_band", "panel_grid", "read_csv", "has_data",
-                          "figure_to_png", "COLORS"]
+__all__ = ["plot_run", "plot_curves_with_band", "panel_grid", "has_data", "figure_to_png", "COLORS"]

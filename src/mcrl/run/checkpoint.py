@@ -21,9 +21,21 @@ import jax
 import numpy as np
 
 from mcrl.errors import MCRLError
+from mcrl.run import rundir
 
 _COMPLETE = ("state.npz", "meta.json")  # a checkpoint directory without these is not usable
 _LEGACY = ".norm."  # mcrl 0.1 kept the normaliser inside state.npz
+# mcrl 0.1's train-state keys -> today's (parameters and optimiser state now travel together); longest first
+_RENAMED = ((".critic_target", ".q_target"), (".critic_opt", ".q.opt"), (".critic", ".q.params"),
+            (".actor_opt", ".pi.opt"), (".actor", ".pi.params"), (".ent_opt", ".ent.opt"),
+            (".log_ent_coef", ".ent.params"), (".mc_opt", ".mc_models.opt"), (".mc", ".mc_models.params"))
+
+
+def _current_key(key: str) -> str:
+    for old, new in _RENAMED:
+        if key == old or key.startswith(old + "[") or key.startswith(old + "."):
+            return new + key[len(old):]
+    return key
 
 
 def _flatten(tree) -> dict[str, np.ndarray]:
@@ -56,10 +68,10 @@ def _write_text(path: Path, text: str) -> None:
 def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: dict | None, keep: int,
          extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
     """Write `state` (a pytree), `extra` arrays (one `<name>.npz` each), the buffer and `meta` as step `step`."""
-    ckpt_root = Path(run_dir) / "checkpoints"
+    ckpt_root = rundir.checkpoint_root(run_dir)
     ckpt_root.mkdir(parents=True, exist_ok=True)
-    final = ckpt_root / f"step_{step:09d}"
-    tmp = ckpt_root / f".tmp-step_{step:09d}"
+    final = ckpt_root / rundir.checkpoint_name(step)
+    tmp = ckpt_root / f".tmp-{final.name}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     _write_npz(tmp / "state.npz", _flatten(jax.device_get(state)))
@@ -70,16 +82,14 @@ def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: d
     _write_text(tmp / "meta.json", json.dumps({**meta, "step": step, "has_buffer": buffer_arrays is not None}))
     _fsync_dir(tmp)
     if final.exists():  # the same step saved again (a resumed run): move the old one aside, drop it after
-        old = ckpt_root / f".old-step_{step:09d}"
+        old = ckpt_root / f".old-{final.name}"
         shutil.rmtree(old, ignore_errors=True)
         os.rename(final, old)
         os.rename(tmp, final)
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.rename(tmp, final)
-    latest_tmp = ckpt_root / ".latest.tmp"
-    latest_tmp.write_text(final.name)
-    os.replace(latest_tmp, ckpt_root / "latest")
+    rundir.write_latest(run_dir, final.name)
     _fsync_dir(ckpt_root)
     for old in sorted(ckpt_root.glob("step_*"))[:-keep]:
         shutil.rmtree(old, ignore_errors=True)
@@ -88,18 +98,16 @@ def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: d
 
 def find(run_dir: Path, step: int | None = None) -> Path:
     """The newest complete checkpoint (or the one at `step`)."""
-    ckpt_root = Path(run_dir) / "checkpoints"
+    ckpt_root = rundir.checkpoint_root(run_dir)
     if step is not None:
-        path = ckpt_root / f"step_{step:09d}"
+        path = ckpt_root / rundir.checkpoint_name(step)
         if not path.is_dir():
             have = sorted(p.name for p in ckpt_root.glob("step_*"))
             raise MCRLError(f"no checkpoint at step {step} in {run_dir}: available: {', '.join(have) or 'none'}")
         return path
-    latest = ckpt_root / "latest"
-    if latest.is_file():
-        path = ckpt_root / latest.read_text().strip()
-        if is_complete(path):
-            return path
+    latest = rundir.latest_checkpoint(run_dir)
+    if latest is not None and is_complete(ckpt_root / latest):
+        return ckpt_root / latest
     # `latest` missing or dangling (a kill between two renames): the newest complete checkpoint instead
     for path in sorted(ckpt_root.glob("step_*"), reverse=True):
         if is_complete(path):
@@ -132,7 +140,9 @@ def restore_state(ckpt: Path, template):
     """Fill `template` (a freshly initialised state of the same config) with the checkpoint's arrays."""
     arrays = _load_npz(ckpt / "state.npz")
     for key in [k for k in arrays if k.startswith(_LEGACY)]:
-        del arrays[key]  # mcrl 0.1's in-state normaliser: read through load_extra's fallback, not here
+        del arrays[key]  # mcrl 0.1's in-state normaliser: read through legacy_normaliser, not here
+    if ".actor" in {k.split("[")[0] for k in arrays}:  # an mcrl 0.1 checkpoint
+        arrays = {_current_key(k): v for k, v in arrays.items()}
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     new_leaves = []
     for path, leaf in leaves:

@@ -1,6 +1,6 @@
 """Speed measurements of mcrl's own training (used by benchmarks/bench.py).
 
-- steps/s: the real training loop (`mcrl.trainer.train`), read off the per-interval wall-clock times
+- steps/s: the real training loop (`mcrl.run.trainer.train`), read off the per-interval wall-clock times
   in metrics.csv after warm-up; one interval per repetition, median reported.
 - ms per gradient step: the jitted update alone on replay batches, synchronised, median of repetitions.
 - ms per environment step: policy forward pass + env.step + buffer insert, median of repetitions.
@@ -16,12 +16,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from mcrl import normaliser
+from mcrl.algo import normaliser
 from mcrl.config import resolve_config
 from mcrl.envs import episode_seed, flatten_obs, to_env_action
-from mcrl.logger import read_csv
-from mcrl.sac import Batch
-from mcrl.trainer import _build, train
+from mcrl.run.rundir import read_rows
+from mcrl.algo.sac import Batch
+from mcrl.run.policy import build
+from mcrl.run.trainer import Trainer, new_run_state, train
 
 
 def _flops(compiled) -> float:
@@ -39,7 +40,7 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
     of values for the whole-run history.
     """
     cfg = resolve_config(preset, {"buffer_size": 20_000, **(overrides or {})})
-    env, spec, agent, buffer = _build(cfg)
+    env, spec, agent, buffer = build(cfg)
     rng = np.random.default_rng(0)
     obs, _ = env.reset(seed=0)
     for i in range(max(cfg.batch_size * 2, 1000)):  # a buffer of real transitions with finished episodes
@@ -74,29 +75,27 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
 
 
 def measure_env_step(preset: str, repeats: int = 5, steps: int = 500) -> dict:
-    """ms per environment step of the acting path: actor forward + env.step + buffer insert."""
+    """ms per environment step of the trainer's acting path (`Trainer.env_step`): actor forward + env.step +
+    buffer insert."""
     cfg = resolve_config(preset, {"buffer_size": 20_000})
-    env, spec, agent, buffer = _build(cfg)
-    state = agent.init(0)
-    key = jax.random.PRNGKey(0)
-    act = jax.jit(lambda params, obs, t: agent.act(params, obs, jax.random.fold_in(key, t)))  # as the trainer
-    obs, _ = env.reset(seed=0)
-    flat = flatten_obs(obs)
-    times, episode = [], 0
-    for rep in range(repeats + 1):
-        t = time.perf_counter()
-        for i in range(steps):
-            a = np.asarray(act(state.actor, flat[None], i))[0]
-            nxt, r, term, trunc, _ = env.step(to_env_action(a, env, cfg.action_scale))
-            nflat = flatten_obs(nxt)
-            buffer.add(flat, a, r, nflat, term, term or trunc)
-            flat = nflat
-            if term or trunc:
-                episode += 1
-                flat = flatten_obs(env.reset(seed=episode_seed(0, 0, episode))[0])
-        if rep > 0:  # the first block compiles
-            times.append((time.perf_counter() - t) / steps * 1e3)
-    env.close()
+    env, spec, agent, buffer = build(cfg)
+    times = []
+    with tempfile.TemporaryDirectory() as d:
+        trainer = Trainer(cfg, Path(d), env, spec, agent, resume_step=None)
+        rs = new_run_state(cfg, agent, buffer)
+        rs.progress.step = cfg.learning_starts  # act with the policy, not the warm-up's uniform actions
+        flat = flatten_obs(env.reset(seed=0)[0])
+        for rep in range(repeats + 1):
+            t = time.perf_counter()
+            for _ in range(steps):
+                flat, _, term, trunc, _ = trainer.env_step(rs, flat)
+                rs.progress.step += 1
+                if term or trunc:
+                    rs.progress.episode += 1
+                    flat = flatten_obs(env.reset(seed=episode_seed(0, 0, rs.progress.episode))[0])
+            if rep > 0:  # the first block compiles
+                times.append((time.perf_counter() - t) / steps * 1e3)
+        trainer.close()
     return {"ms_per_env_step": statistics.median(times), "ms_per_env_step_all": times}
 
 
@@ -110,7 +109,7 @@ def measure_loop(preset: str, steps: int = 1000, repeats: int = 3, warmup: int =
     cfg.total_steps = first + (repeats + 1) * steps  # one extra interval: the last one holds the final eval
     with tempfile.TemporaryDirectory() as d:
         run = train(cfg, Path(d) / "bench", progress=False)
-        rows = read_csv(run / "metrics.csv")
+        rows = read_rows(run / "metrics.csv")
     t = {int(r["step"]): r["time_s"] for r in rows}
     rates = [steps / (t[s + steps] - t[s]) for s in range(first, first + repeats * steps, steps)]
     return {"steps_per_s": statistics.median(rates), "steps_per_s_all": rates}

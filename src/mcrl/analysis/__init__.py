@@ -1,0 +1,1 @@
+"""Reading experiments and runs: statistics, plots, and the `mcrl report`."""

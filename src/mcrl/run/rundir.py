@@ -1,0 +1,186 @@
+"""The run directory: the one place that knows its file names, and how each file is read and written.
+
+One reader and one writer per format (the idea of stable-baselines3's `monitor.py` / `save_util.py`). Importing
+this module does not import JAX, so analysis, sweeps and tracking can read runs cheaply. The layout is
+documented in docs/run-directory.md:
+
+    RUN_DIR/config.json       the resolved Config                  read_config / write_json_atomic
+    RUN_DIR/metrics.csv       one row per log interval             read_rows / read_columns
+    RUN_DIR/eval.csv          one row per evaluation               read_rows / read_columns
+    RUN_DIR/final_eval.json   the evaluation at the end            read_json
+    RUN_DIR/done              the final summary, written last      read_json / is_done
+    RUN_DIR/peer.json         reference runs made by another system (optional)
+    RUN_DIR/checkpoints/step_<N>/ and checkpoints/latest           latest_checkpoint / write_latest
+    RUN_DIR/videos/
+
+An experiment directory (``mcrl sweep``) holds ``EXP/sweep.json`` (its runs) and ``EXP/runs/<name>/``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mcrl.algo.metrics import MC_METRICS, UPDATE_METRICS  # noqa: F401  (re-exported: the metrics.csv columns)
+from mcrl.config import Config
+from mcrl.errors import MCRLError
+
+CONFIG = "config.json"
+METRICS = "metrics.csv"
+EVAL = "eval.csv"
+FINAL_EVAL = "final_eval.json"
+DONE = "done"
+PEER = "peer.json"
+CHECKPOINTS = "checkpoints"
+LATEST = "latest"
+VIDEOS = "videos"
+SWEEP_JSON = "sweep.json"  # EXP/sweep.json: the runs of a sweep
+RUNS = "runs"              # EXP/runs/<name>/: its run directories
+SMALL_FILES = (CONFIG, METRICS, EVAL, FINAL_EVAL, PEER, DONE)  # what an experiment commits of a finished run
+
+# metrics.csv: the loop's columns around the gradient step's metrics (mcrl.algo.metrics)
+METRIC_COLUMNS = ("step", "time_s", "steps_per_s", "episodes", "train_return", "train_success_rate",
+                  "eval_success_rate", "eval_mean_return", *UPDATE_METRICS, "mc_bound_low", "mc_bound_high")
+EVAL_COLUMNS = ("step", "success_rate", "mean_return", "episodes")
+TIMING_COLUMNS = ("time_s", "steps_per_s")  # wall-clock: the only columns that differ between identical runs
+LEARNING_COLUMNS = tuple(c for c in METRIC_COLUMNS if c not in TIMING_COLUMNS)
+
+
+# ----------------------------------------------------------------------------- JSON
+def read_json(path: str | Path, strict: bool = False) -> dict[str, Any]:
+    """A JSON object, or {} when the file is missing, unreadable or not an object (a run still being written).
+
+    With `strict`, a file that exists but is not valid JSON is an error: a report must not quietly leave out a
+    damaged run."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except OSError:
+        return {}
+    except ValueError as e:
+        if strict:
+            raise MCRLError(f"{path} is not valid JSON ({e}): fix or delete it and re-run that step") from None
+        return {}
+    return obj if isinstance(obj, dict) else {}
+
+
+def write_json_atomic(path: str | Path, obj: dict[str, Any]) -> None:
+    """Write `obj` so that a reader sees the old file or the new one, never half of one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        f.write(json.dumps(obj, indent=2, sort_keys=True) if path.name == CONFIG else json.dumps(obj))
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_config(run_dir: str | Path) -> Config:
+    """The run's typed config (also for run directories written before `init` existed, see Config.from_run_json)."""
+    path = Path(run_dir) / CONFIG
+    if not path.is_file():
+        raise MCRLError(f"{run_dir} is not a run directory (no {CONFIG}): give the directory `mcrl train` printed")
+    try:
+        return Config.from_run_json(json.loads(path.read_text()))
+    except ValueError as e:
+        raise MCRLError(f"{path} is not valid JSON ({e}): the run directory is damaged") from None
+
+
+def is_done(run_dir: str | Path) -> bool:
+    return (Path(run_dir) / DONE).is_file()
+
+
+def read_summary(run_dir: str | Path) -> dict[str, Any]:
+    """The final summary `done` holds ({} while the run is unfinished)."""
+    return read_json(Path(run_dir) / DONE)
+
+
+# ----------------------------------------------------------------------------- CSV
+def _number(cell: str | None) -> float | None:
+    if cell in ("", None):
+        return None
+    try:
+        return float(cell)
+    except ValueError:
+        return None
+
+
+def read_rows(path: str | Path) -> list[dict[str, float | None]]:
+    """Rows of a run's CSV as dicts of floats (None for empty cells); [] for a missing file."""
+    p = Path(path)
+    if not p.is_file():
+        return []
+    with p.open(newline="") as f:
+        return [{k: _number(v) for k, v in r.items() if k is not None} for r in csv.DictReader(f)]
+
+
+def read_columns(path: str | Path) -> dict[str, np.ndarray]:
+    """Columns of a run's CSV as float arrays, NaN for empty cells; {} for a missing or empty file."""
+    rows = read_rows(path)
+    p = Path(path)
+    if not rows:
+        if not p.is_file():
+            return {}
+        with p.open(newline="") as f:
+            header = next(csv.reader(f), None)
+        return {h.strip(): np.zeros(0) for h in header} if header else {}
+    return {k.strip(): np.array([math.nan if r.get(k) is None else r[k] for r in rows], dtype=float)
+            for k in rows[0]}
+
+
+def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
+    """Keep the header and rows with step <= max_step (a resumed run writes the later rows again)."""
+    if not path.exists():
+        return
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if int(float(r["step"])) <= max_step]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=columns)
+        w.writeheader()
+        w.writerows(rows)
+
+
+def start_csv(path: Path, columns: tuple[str, ...]) -> None:
+    with open(path, "w", newline="") as f:
+        csv.DictWriter(f, fieldnames=columns).writeheader()
+
+
+def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
+    with open(path, "a", newline="") as f:
+        csv.DictWriter(f, fieldnames=columns, extrasaction="ignore").writerow(
+            {k: ("" if row.get(k) is None else row[k]) for k in columns})
+
+
+def video_path(run_dir: str | Path, kind: str, step: int, fmt: str) -> Path:
+    """RUN_DIR/videos/<kind>_step<N>.<fmt>: `policy` from `mcrl render`, `eval` from --video-every."""
+    return Path(run_dir) / VIDEOS / f"{kind}_step{step}.{fmt}"
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def checkpoint_root(run_dir: str | Path) -> Path:
+    return Path(run_dir) / CHECKPOINTS
+
+
+def checkpoint_name(step: int) -> str:
+    return f"step_{step:09d}"
+
+
+def latest_checkpoint(run_dir: str | Path) -> str | None:
+    """The name the `latest` pointer holds, or None (the pointer may dangle: see checkpoint.find)."""
+    p = checkpoint_root(run_dir) / LATEST
+    try:
+        return p.read_text().strip() or None
+    except OSError:
+        return None
+
+
+def write_latest(run_dir: str | Path, name: str) -> None:
+    """Point `latest` at checkpoint `name`, atomically."""
+    root = checkpoint_root(run_dir)
+    tmp = root / f".{LATEST}.tmp"
+    tmp.write_text(name)
+    os.replace(tmp, root / LATEST)

@@ -1,0 +1,38 @@
+"""``mcrl sweep``: many runs of one experiment (a grid over config keys and seeds) in one directory.
+
+An experiment directory ``EXP`` holds ``sweep.json`` (the runs: name, config_key, seed, overrides;
+the format ``mcrl report`` reads) and one run directory per run, ``EXP/runs/<name>/`` (see
+docs/run-directory.md). Running the same sweep again on the same ``EXP`` skips finished runs
+(``done`` exists) and resumes unfinished ones from their newest checkpoint, so killing the sweep or
+one of its workers loses at most each run's work since its last checkpoint. Everything is validated
+(sweep file, every grid point with ``resolve_config``, environments, the Ray address, the tracking
+URI) before ``EXP`` is created: a bad sweep writes nothing.
+
+Python API::
+
+    from mcrl import sweep
+    plan = sweep.plan_from_args("fetchreach-sacmc", alphas="0,0.2", seeds=3)   # or plan_from_file / _experiment
+    result = sweep.run_sweep(plan, "experiments/alpha", backend="local", workers=2)
+
+The package, one idea per module (each imports only those above it; none imports jax or ray at import
+time, since a local worker must set its thread limits before jax is imported):
+
+- ``plan``: grid / arguments / YAML file / ``sweep.json`` -> a ``SweepPlan``, a list of ``RunPlan``.
+- ``files``: a run directory seen from the driver: its state, and its files shipped between worker
+  and driver (file names and formats are ``mcrl.run.rundir``'s).
+- ``worker``: inside a worker process: thread limits (``thread_env``), training one run, dying with
+  the driver.
+- ``driver``: the driver's progress lines and bar, and the ``SweepResult``.
+- ``local``: the local backend, one spawned process per run.
+- ``ray_backend``: the Ray backend, one Ray task per run, shipping files back when the worker cannot
+  see ``EXP``.
+- ``tracking``: MLflow logging of finished runs (imported only with ``--tracking``).
+- ``experiment``: ``run_sweep``: validate, lock ``EXP``, write ``sweep.json``, hand runs to a backend.
+"""
+from mcrl.sweep.driver import SweepResult
+from mcrl.sweep.experiment import default_exp_dir, run_sweep
+from mcrl.sweep.plan import (RunPlan, SweepPlan, build_plan, parse_alphas, parse_seeds, plan_from_args,
+                             plan_from_experiment, plan_from_file)
+
+__all__ = ["RunPlan", "SweepPlan", "SweepResult", "build_plan", "default_exp_dir", "parse_alphas", "parse_seeds",
+           "plan_from_args", "plan_from_experiment", "plan_from_file", "run_sweep"]

@@ -1,0 +1,218 @@
+"""``run_sweep``: run a ``SweepPlan`` into one experiment directory ``EXP``.
+
+In order: validate every setting (backend, counts, ``EXP`` against a sweep already in it, the Ray
+address, the tracking URI) while nothing is written; then lock ``EXP``, write ``EXP/sweep.json`` (the
+union of the runs there and the plan's), skip finished runs and hand the others to a backend
+(``local.run_local`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in a background
+thread (``tracking``), so the next runs start meanwhile.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+import uuid
+from pathlib import Path
+from typing import Callable
+
+from mcrl.config import resolve_config
+from mcrl.errors import MCRLError
+from mcrl.sweep.driver import Driver, SweepResult
+from mcrl.sweep.files import RUNS, run_dir, run_status
+from mcrl.sweep.local import run_local
+from mcrl.run.rundir import SWEEP_JSON
+from mcrl.sweep.plan import RunPlan, SweepPlan, jsonable, load_sweep_json, safe_name
+from mcrl.sweep.ray_backend import check_ray_address, import_ray, ray_auth_env, run_ray, start_ray
+from mcrl.sweep.worker import cpu_count, thread_env
+
+LOCK = ".sweep.lock"  # EXP/.sweep.lock: held by the one `mcrl sweep` running on EXP
+
+
+def default_exp_dir(plan: SweepPlan) -> Path:
+    name = plan.preset or safe_name(plan.runs[0].config.env_id)
+    return Path("experiments") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _merge_with_existing(plan: SweepPlan, exp: Path) -> tuple[dict | None, list[dict]]:
+    """Check that `plan` fits the sweep already in `exp`; the runs of the merged sweep.json."""
+    if exp.exists() and not exp.is_dir():
+        raise MCRLError(f"--exp {exp} is a file: give a directory")
+    old = load_sweep_json(exp) if exp.is_dir() else None
+    if old is None:
+        if exp.is_dir() and any(exp.iterdir()):
+            raise MCRLError(f"--exp {exp} exists and is not a sweep directory (no {SWEEP_JSON}): choose a new "
+                            "directory or an empty one")
+        return None, [r.entry() for r in plan.runs]
+    if (old.get("preset") or None) != plan.preset:
+        raise MCRLError(f"{exp} holds a sweep of preset {old.get('preset')!r}, not {plan.preset!r}: "
+                        "choose a new --exp for a different preset")
+    entries = list(old.get("runs") or [])
+    by_name = {str(e.get("name")): e for e in entries}
+    for r in plan.runs:
+        e = by_name.get(r.name)
+        if e is None:
+            entries.append(r.entry())
+            continue
+        try:
+            old_cfg = resolve_config(plan.preset, dict(e.get("overrides") or {})).to_dict()
+        except MCRLError:
+            old_cfg = None
+        if old_cfg != r.config.to_dict():
+            new = r.config.to_dict()
+            diff = sorted(k for k in new if old_cfg is None or old_cfg.get(k) != new[k])
+            raise MCRLError(f"{exp} already has a run {r.name} with a different config (differs in {diff}): "
+                            "re-run the sweep with its original settings, or choose a new --exp")
+    return old, entries
+
+
+def _write_sweep_json(exp: Path, doc: dict) -> None:
+    """Atomically, indented for people to read (not rundir.write_json_atomic: sweep.json is not a run's file)."""
+    path = exp / SWEEP_JSON
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(doc, indent=2, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def _lock(exp: Path):
+    import fcntl
+
+    f = open(exp / LOCK, "a+")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.close()
+        raise MCRLError(f"another `mcrl sweep` is running on {exp}: wait for it or stop it first") from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"{os.getpid()}\n")
+    f.flush()
+    return f
+
+
+def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str = "local", workers: int | None = None,
+              threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
+              tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
+              out: Callable[[str], None] | None = None) -> SweepResult:
+    """Run every unfinished run of `plan` into one experiment directory; see the package docstring.
+
+    Raises MCRLError (before writing anything) on bad settings; a run that fails is reported in the
+    result (`failed`) while the others go on."""
+    # ---- validate everything before EXP exists
+    if backend not in ("local", "ray"):
+        raise MCRLError(f"--backend {backend!r}: choose local or ray")
+    if not plan.runs:
+        raise MCRLError("the sweep has no runs (empty grid): give at least one value per grid key")
+    cores = cpu_count()
+    if workers is not None and workers < 1:
+        raise MCRLError(f"--workers {workers}: give at least 1")
+    if threads_per_run is not None and threads_per_run < 1:
+        raise MCRLError(f"--threads-per-run {threads_per_run}: give at least 1")
+    if retries < 0:
+        raise MCRLError(f"--retries {retries}: give 0 or more")
+    if gpus_per_run and gpus_per_run < 0:
+        raise MCRLError(f"--gpus-per-run {gpus_per_run}: give 0 or more")
+    if backend == "local" and (address or gpus_per_run):
+        raise MCRLError("--address and --gpus-per-run are for --backend ray: add --backend ray or drop them")
+    n_workers = workers or cores
+    threads = threads_per_run or max(1, cores // n_workers)
+    exp = Path(exp_dir) if exp_dir is not None else default_exp_dir(plan)
+    exp = exp.absolute()
+    old, entries = _merge_with_existing(plan, exp)
+    tracker = None
+    if tracking or tracking_uri:
+        from mcrl.sweep.tracking import Tracker  # imports MLflow: only when tracking
+
+        tracker = Tracker.check(tracking_uri, exp)  # probes; writes nothing
+    env = thread_env(threads)
+    ray = None
+    local_instance = False
+    if backend == "ray":
+        if address:
+            check_ray_address(address)
+        ray_auth_env(address)
+        import_ray()
+
+    # ---- start
+    if backend == "ray":
+        ray, local_instance = start_ray(address, n_workers * threads)
+    result = SweepResult(exp)
+    lock = None
+    drv = None
+    log_pool = None
+    log_jobs: list = []
+
+    def log(run: RunPlan) -> None:
+        try:
+            tracker.log_run(run, run_dir(exp, run.name))
+        except Exception as e:  # tracking must not cost the run; the next sweep call logs it
+            drv.line(f"warning: MLflow logging of {run.name} failed ({type(e).__name__}: "
+                     f"{str(e).splitlines()[0] if str(e) else ''}); re-run the sweep to log it")
+
+    def on_finish(run: RunPlan, summary: dict) -> None:
+        if tracker is not None:  # in the background: the next runs start meanwhile
+            log_jobs.append(log_pool.submit(log, run))
+
+    try:
+        exp.mkdir(parents=True, exist_ok=True)
+        lock = _lock(exp)
+        sweep_id = (old or {}).get("id") or uuid.uuid4().hex
+        doc = {"preset": plan.preset, "id": sweep_id,
+               "created": (old or {}).get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
+               "grid": jsonable((old or {}).get("grid") or plan.grid),
+               "set": jsonable((old or {}).get("set") or plan.fixed), "runs": entries}
+        _write_sweep_json(exp, doc)
+        (exp / RUNS).mkdir(exist_ok=True)
+        if tracker is not None:
+            tracker.open(exp, sweep_id, plan.preset)
+            result.tracking_uri, result.tracking_experiment = tracker.uri, tracker.experiment_name
+
+        drv = Driver(plan.runs, exp, result, progress, out, on_finish)
+        drv.line(f"experiment directory: {exp} ({len(plan.runs)} run{'s' if len(plan.runs) != 1 else ''}, "
+                 f"backend {backend}, "
+                 f"{'up to ' + str(n_workers) + ' at a time, ' if backend == 'local' or workers else ''}"
+                 f"{threads} thread(s) per run)")
+        others = len(entries) - len(plan.runs)
+        if others > 0:
+            drv.line(f"note: {SWEEP_JSON} lists {others} more run(s) than this command; "
+                     f"`mcrl sweep --exp {exp}` continues all of them")
+        todo = []
+        for r in plan.runs:
+            if run_status(run_dir(exp, r.name))[0] == "finished":
+                drv.skipped(r)
+            else:
+                todo.append(r)
+
+        if tracker is not None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            log_pool = ThreadPoolExecutor(1, thread_name_prefix="mcrl-mlflow")
+            # runs finished earlier (maybe before --tracking was given): log those missing from the store
+            for name in result.skipped:
+                if not tracker.is_logged(name):
+                    on_finish(next(r for r in plan.runs if r.name == name), {})
+        if backend == "local":
+            run_local(todo, exp, sweep_id, n_workers, env, retries, drv)
+        else:
+            if workers:
+                limit = workers
+            else:
+                cpus = float(ray.cluster_resources().get("CPU", n_workers * threads))
+                limit = max(1, int(cpus // threads))
+            run_ray(ray, todo, exp, sweep_id, limit, threads, gpus_per_run, env, retries, local_instance, drv)
+        if log_pool is not None:
+            if any(not j.done() for j in log_jobs):
+                drv.line("logging the last run(s) to MLflow ...")
+            log_pool.shutdown(wait=True)
+            log_pool = None
+    finally:
+        if log_pool is not None:  # interrupted: do not wait for MLflow (the next sweep call logs what is missing)
+            log_pool.shutdown(wait=False, cancel_futures=True)
+        if drv is not None:
+            drv.close()
+        if lock is not None:
+            lock.close()
+        if ray is not None:
+            with contextlib.suppress(Exception):
+                ray.shutdown()
+    return result
