@@ -52,8 +52,9 @@ case "$cmd" in
       --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
     echo "started main sweep (log $WORK/main.log)"
     mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
-      "git checkout $COMMIT && mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
-    if [ "${WITH_SB3:-1}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then  # stable-baselines3 reference, seeds 0-2, one after another
+      "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
+    # SB3 runs cannot resume: start them (WITH_SB3=1) only with a free core for ~1 h per 150k-step seed
+    if [ "${WITH_SB3:-0}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then  # stable-baselines3 reference, seeds 0-2, one after another
       (for s in 0 1 2; do
          d="$WORK/sb3-sac/runs/sb3-sac-s$s"
          [ -f "$d/done" ] && continue
@@ -67,7 +68,7 @@ case "$cmd" in
         --workers 1 --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
       echo "started the code-variant sweep (log $WORK/code-variant.log)"
       mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --exp EXP" \
-        "git checkout $COMMIT && mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
+        "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
     fi ;;
   *) echo "usage: $0 start|sync|status" >&2; exit 2 ;;
 esac
