@@ -117,7 +117,8 @@ def test_markdown_report_values(experiment: Path, tmp_path: Path) -> None:
     assert "SAC (`alpha=0`) mean return: the thesis' -31.3 lies inside our 95% CI" in thesis
     # All three SAC-MC returns are above -23, so every bootstrap mean is too.
     assert "SAC-MC alpha=0.2 (`alpha=0.2`) mean return: the thesis' -23.0 lies below our 95% CI" in thesis
-    assert "P(`alpha=0.2` > `alpha=0`) = 0.944 [" in thesis and "the claim is supported" in thesis
+    assert ("**Reproduced**: the thesis' claim that SAC-MC alpha=0.2 reaches a higher final success rate than SAC "
+            "(thesis: +0.23), X = `alpha=0.2`, Y = `alpha=0`: P(X > Y) = 0.944 [") in thesis
 
     mcs = _section(md, "MC reward and raw KL during training")
     assert _row(mcs, "`alpha=0.2`")[2:] == ["-0.2500", "1.1000"]  # last logged values at step 1000
@@ -197,7 +198,7 @@ def test_plot_run_writes_a_real_png(experiment: Path, tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------ verdicts need enough seeds
 
-VERDICT_WORDS = ("better", "worse", "supported", "contradicted")
+VERDICT_WORDS = ("better", "worse", "supported", "contradicted", "**reproduced**", "**not reproduced**")
 
 
 def _experiment(exp: Path, finals: dict[float, list[tuple[float, float]]], preset: str = "fetchpush-test",
@@ -227,7 +228,9 @@ def test_no_verdict_from_too_few_seeds(tmp_path: Path, n_seeds: int) -> None:
     poi = _row(_section(md, "IQM and probability of improvement"), "`alpha=0.2` > `alpha=0`")
     assert poi[3] == few and poi[5] == few
     thesis = _section(md, "Comparison with the thesis (FetchPush)")
-    assert f"P(`alpha=0.2` > `alpha=0`) = 0.000 [0.000, 0.000]; {few}." in thesis
+    assert (f"**Not decidable with this many seeds**: the thesis' claim that SAC-MC alpha=0.2 reaches a higher final "
+            f"success rate than SAC (thesis: +0.23), X = `alpha=0.2`, Y = `alpha=0`: {n_seeds} vs {n_seeds} seeds, "
+            f"fewer than the {MIN_SEEDS_FOR_VERDICT} a verdict needs.") in thesis
     assert f"SAC (`alpha=0`) success rate: too few seeds for a verdict (n={n_seeds}, need >= 3)" in thesis
     assert _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")[4] == few
     assert f"at least {MIN_SEEDS_FOR_VERDICT} finished seeds" in md  # the rule is stated in the overview
@@ -240,7 +243,7 @@ def test_clear_difference_with_enough_seeds_gives_a_verdict(tmp_path: Path) -> N
     poi = _row(_section(md, "IQM and probability of improvement"), "`alpha=0.2` > `alpha=0`")
     assert poi[2].startswith("1.000 [1.000, 1.000]") and poi[3] == "better than SAC (CI above 0.5)"
     assert poi[5] == "better than SAC (CI above 0.5)"
-    assert "so the claim is supported by our runs" in md and "too few seeds" not in md.split("## Learning")[1]
+    assert "**Reproduced**: the thesis' claim that SAC-MC alpha=0.2" in md and "too few seeds" not in md.split("## Learning")[1]
     # MDE = (z_.975 + z_.8) * sqrt(0.01/3 + 0.01/3); seeds to detect 0.6: 2.8016^2 * 0.02 / 0.36 -> 2
     mde = _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")
     assert mde[1:] == ["3 / 3", "0.100 / 0.100", "0.600", "0.229", "2"]
@@ -344,3 +347,15 @@ def test_with_a_missing_directory_is_one_line(tmp_path: Path, experiment: Path,
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "--with" in err and "nope" in err
     assert not (experiment / "report").exists()
+
+
+def test_thesis_claims_get_one_of_three_verdicts_and_the_code_variant_is_named(tmp_path: Path) -> None:
+    # 6 seeds each, SAC-MC no better than SAC: an improvement of the thesis' +0.23 is excluded
+    sac = [(s, -30.0) for s in (0.5, 0.55, 0.6, 0.5, 0.55, 0.6)]
+    mc = [(s, -30.0) for s in (0.5, 0.55, 0.6, 0.45, 0.5, 0.55)]
+    code = {"mc_reduction": "batch", "mc_state": "full"}
+    md = write_report(_experiment(tmp_path / "exp", {0.0: sac, 0.2: mc}, config=code), tmp_path / "rep").read_text()
+    thesis = _section(md, "Comparison with the thesis (FetchPush)")
+    assert ("**Not reproduced**: the thesis' claim that the thesis' code's variant of SAC-MC alpha=0.2 (one "
+            "batch-mean KL, the whole observation) reaches a higher final success rate than SAC") in thesis
+    assert "the claimed difference +0.230 lies above the 95% CI of our mean difference -0.025 [" in thesis
