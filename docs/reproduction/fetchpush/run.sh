@@ -24,7 +24,12 @@ sync() {
   return 0
 }
 case "$cmd" in
-  sync) sync ;;
+  sync)
+    sync
+    # a file git ignores would be lost with the machine: say so now, not when it is gone
+    if git -C "$REPO" check-ignore -q "$HERE"/*/runs/*/config.json 2>/dev/null; then
+      echo "error: git ignores the synced run files under $HERE: fix .gitignore before committing" >&2; exit 1
+    fi ;;
   status)
     for arm in $ARMS; do
       echo "$arm: $(ls -d "$WORK/$arm"/runs/*/done 2>/dev/null | wc -l) finished;" \
@@ -37,7 +42,9 @@ case "$cmd" in
     fi
     for arm in $ARMS; do  # finished runs from git: the sweep skips them
       if [ -d "$HERE/$arm/runs" ]; then mkdir -p "$WORK/$arm/runs"; cp -rn "$HERE/$arm/runs/." "$WORK/$arm/runs/"; fi
-      [ -f "$HERE/$arm/sweep.json" ] && [ ! -f "$WORK/$arm/sweep.json" ] && cp "$HERE/$arm/sweep.json" "$WORK/$arm/"
+      if [ -f "$HERE/$arm/sweep.json" ] && [ ! -f "$WORK/$arm/sweep.json" ]; then
+        mkdir -p "$WORK/$arm" && cp "$HERE/$arm/sweep.json" "$WORK/$arm/"
+      fi
     done
     machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
     mk_prov() {  # $1 arm, $2 command, $3 one-seed command; after the sweep made its directory (it wants it empty)
