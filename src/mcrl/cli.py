@@ -190,7 +190,12 @@ def _sweep(sub) -> None:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override of a config key (repeatable)")
     p.add_argument("--file", help="YAML sweep file: preset, grid: {key: [values]}, optional set: {key: value}, seeds")
     p.add_argument("--exp", type=Path, help="experiment directory (default experiments/<preset>-<time>)")
-    p.add_argument("--backend", choices=("local", "ray"), default="local")
+    p.add_argument("--backend", choices=("local", "ray", "vmap"), default="local",
+                   help="local: a process per run; ray: a Ray task per run; vmap: runs that share shapes train as "
+                   "one vmapped computation (one process per group, all cores; the fastest on a GPU)")
+    p.add_argument("--group-size", type=int, help="vmap: at most N runs per group (default: all that fit together)")
+    p.add_argument("--env-workers", type=int, default=0, help="vmap: step the group's environments in N processes "
+                   "(default 0: in the group's process)")
     p.add_argument("--workers", type=int, help="runs at a time (default: the number of cores; ray with --address: "
                    "as many as the cluster's CPUs allow)")
     p.add_argument("--threads-per-run", type=int, help="threads of each run (default: cores // workers)")
@@ -241,7 +246,8 @@ def _sweep(sub) -> None:
                                   threads_per_run=args.threads_per_run, address=args.address,
                                   gpus_per_run=args.gpus_per_run, tracking=args.tracking,
                                   tracking_uri=args.tracking_uri, retries=args.retries,
-                                  progress=not args.no_progress)
+                                  progress=not args.no_progress, group_size=args.group_size,
+                                  env_workers=args.env_workers)
         except KeyboardInterrupt:
             print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' checkpoints",
                   file=sys.stderr)

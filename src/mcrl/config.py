@@ -35,6 +35,8 @@ class Config:
     ent_coef_init: float = 1.0  # 'auto' entropy coefficient, initial value (stable-baselines3's default)
     target_entropy: float | None = None  # None = -|A|
     init: str = "torch"  # torch: weights and biases ~ U(+-1/sqrt(fan_in)) like torch's Linear | flax: LeCun normal, zero bias
+    matmul_precision: str = "float32"  # float32 | bfloat16: layer inputs and kernels rounded to bfloat16 for the
+    # matmuls, with float32 accumulation; parameters and everything else stay float32
     # --- HER ---
     her: bool | None = None  # None = on for goal-conditioned Dict environments
     her_strategy: str = "future"  # future | final | episode
@@ -234,6 +236,9 @@ def validate(cfg: Config) -> None:
         bad(f"mc_reduction={cfg.mc_reduction!r}: choose transition or batch")
     if cfg.init not in ("torch", "flax"):
         bad(f"init={cfg.init!r}: choose torch (as stable-baselines3 and the thesis' code) or flax")
+    if cfg.matmul_precision not in ("float32", "bfloat16"):
+        bad(f"matmul_precision={cfg.matmul_precision!r}: choose float32 (the default) or bfloat16 "
+            "(bfloat16 matmul inputs, float32 accumulation and parameters)")
     if cfg.mc_alpha > 0 and cfg.mc_models is False:
         bad(f"mc_alpha={cfg.mc_alpha} needs the MC models, but mc_models=false: drop --set mc_models=false "
             "(or set mc_alpha=0 for plain SAC)")

@@ -48,14 +48,15 @@ class MCModels:
     state_dim: int
     hidden: tuple[int, ...]
     init_scheme: str = "torch"  # see mcrl.algo.networks
+    matmul_precision: str = "float32"  # float32 | bfloat16, see mcrl.algo.networks
 
     @property
     def transition(self) -> TransitionModel:
-        return TransitionModel(self.hidden, self.state_dim, self.init_scheme)
+        return TransitionModel(self.hidden, self.state_dim, self.init_scheme, self.matmul_precision)
 
     @property
     def action(self) -> ActionModel:
-        return ActionModel(self.hidden, self.state_dim, self.init_scheme)
+        return ActionModel(self.hidden, self.state_dim, self.init_scheme, self.matmul_precision)
 
     def init(self, key, action_dim: int):
         kt, ka = jax.random.split(key)

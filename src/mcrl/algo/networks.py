@@ -4,6 +4,11 @@ Every layer is drawn by `init`: "torch" (the default) as torch's `nn.Linear` dra
 from U(-1/sqrt(fan_in), 1/sqrt(fan_in)), as in stable-baselines3 and the thesis' code; "flax" is Flax's own
 default (LeCun-normal weights, variance 1/fan_in, zero biases). The choice matters: with Flax's default,
 mcrl's critics drifted upward on FetchPush where stable-baselines3's settled (docs/parity.md).
+
+Every layer's matmul runs at `matmul_precision`: "float32" (the default) is Flax's plain Dense; "bfloat16"
+rounds the layer's input and kernel to bfloat16 and multiplies them with float32 accumulation and a float32
+result. Parameters stay float32 (same names, shapes and initialisation), and the bias add, activations,
+log-std clamp and everything outside the matmuls stay float32.
 """
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ import jax.numpy as jnp
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # as in stable-baselines3 and the thesis' MC models
 INITS = ("torch", "flax")
+PRECISIONS = ("float32", "bfloat16")
 
 
 def _uniform(bound: float):
@@ -34,14 +40,32 @@ def dense_inits(init: str, fan_in: int) -> dict:
     raise ValueError(f"unknown init {init!r}: choose one of {INITS}")
 
 
+def bf16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
+    """`lax.dot_general` on bfloat16-rounded operands with float32 accumulation and a float32 result."""
+    del preferred_element_type  # always float32
+    return jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,
+                               precision=precision, preferred_element_type=jnp.float32)
+
+
+def dense_kwargs(init: str, fan_in: int, matmul_precision: str = "float32") -> dict:
+    """Keyword arguments of `nn.Dense`: `dense_inits`, and the matmul for `matmul_precision`."""
+    kwargs = dense_inits(init, fan_in)
+    if matmul_precision == "bfloat16":
+        kwargs["dot_general"] = bf16_dot_general
+    elif matmul_precision != "float32":
+        raise ValueError(f"unknown matmul_precision {matmul_precision!r}: choose one of {PRECISIONS}")
+    return kwargs
+
+
 class MLP(nn.Module):
     hidden: Sequence[int]
     init_scheme: str = "torch"
+    matmul_precision: str = "float32"
 
     @nn.compact
     def __call__(self, x):
         for h in self.hidden:
-            x = nn.relu(nn.Dense(h, **dense_inits(self.init_scheme, x.shape[-1]))(x))
+            x = nn.relu(nn.Dense(h, **dense_kwargs(self.init_scheme, x.shape[-1], self.matmul_precision))(x))
         return x
 
 
@@ -51,11 +75,12 @@ class GaussianHead(nn.Module):
     hidden: Sequence[int]
     out_dim: int
     init_scheme: str = "torch"
+    matmul_precision: str = "float32"
 
     @nn.compact
     def __call__(self, x):
-        h = MLP(self.hidden, self.init_scheme)(x)
-        inits = dense_inits(self.init_scheme, h.shape[-1])
+        h = MLP(self.hidden, self.init_scheme, self.matmul_precision)(x)
+        inits = dense_kwargs(self.init_scheme, h.shape[-1], self.matmul_precision)
         mean = nn.Dense(self.out_dim, name="mean", **inits)(h)
         log_std = jnp.clip(nn.Dense(self.out_dim, name="log_std", **inits)(h), LOG_STD_MIN, LOG_STD_MAX)
         return mean, log_std
@@ -66,15 +91,17 @@ class TwinCritic(nn.Module):
 
     hidden: Sequence[int]
     init_scheme: str = "torch"
+    matmul_precision: str = "float32"
 
     @nn.compact
     def __call__(self, obs, action):
         x = jnp.concatenate([obs, action], -1)
         ensemble = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True},
                            in_axes=None, out_axes=0, axis_size=2)
-        h = ensemble(self.hidden, self.init_scheme)(x)
+        h = ensemble(self.hidden, self.init_scheme, self.matmul_precision)(x)
         q = nn.vmap(nn.Dense, variable_axes={"params": 0}, split_rngs={"params": True},
-                    in_axes=0, out_axes=0, axis_size=2)(1, **dense_inits(self.init_scheme, h.shape[-1]))(h)
+                    in_axes=0, out_axes=0, axis_size=2)(
+            1, **dense_kwargs(self.init_scheme, h.shape[-1], self.matmul_precision))(h)
         return q[..., 0]
 
 
@@ -84,10 +111,12 @@ class TransitionModel(nn.Module):
     hidden: Sequence[int]
     state_dim: int
     init_scheme: str = "torch"
+    matmul_precision: str = "float32"
 
     @nn.compact
     def __call__(self, s, a):
-        return GaussianHead(self.hidden, self.state_dim, self.init_scheme)(jnp.concatenate([s, a], -1))
+        x = jnp.concatenate([s, a], -1)
+        return GaussianHead(self.hidden, self.state_dim, self.init_scheme, self.matmul_precision)(x)
 
 
 class ActionModel(nn.Module):
@@ -96,7 +125,8 @@ class ActionModel(nn.Module):
     hidden: Sequence[int]
     state_dim: int
     init_scheme: str = "torch"
+    matmul_precision: str = "float32"
 
     @nn.compact
     def __call__(self, a):
-        return GaussianHead(self.hidden, self.state_dim, self.init_scheme)(a)
+        return GaussianHead(self.hidden, self.state_dim, self.init_scheme, self.matmul_precision)(a)

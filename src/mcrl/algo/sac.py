@@ -8,6 +8,10 @@
      stable-baselines3 (entropy coefficient read before its own update);
   5. the MC models' Adam step (so the reward used step t's models before their update, like the thesis).
 Metrics are summed on the device and read by the host only at log intervals.
+
+`update(state, batch, hyper)` with a `Hyper` takes mc_alpha, gamma, tau and the learning rates as data
+instead of compile-time constants: `jax.vmap` of it trains a grid of runs as one computation
+(`mcrl.run.group`), compiled once for every alpha. Without `hyper` they are the config's constants.
 """
 from __future__ import annotations
 
@@ -60,6 +64,20 @@ class TrainState(NamedTuple):
         return None if self.mc_models is None else self.mc_models.params
 
 
+class Hyper(NamedTuple):
+    """A run's scalar hyperparameters as data (per-run values of a vmapped group)."""
+
+    mc_alpha: Any
+    gamma: Any
+    tau: Any
+    learning_rate: Any
+    mc_lr: Any
+
+    @classmethod
+    def of(cls, cfg: Config) -> "Hyper":
+        return cls(cfg.mc_alpha, cfg.gamma, cfg.tau, cfg.learning_rate, cfg.mc_lr)
+
+
 class Batch(NamedTuple):
     obs: jax.Array  # (B, obs_dim): observation | achieved_goal | desired_goal for goal envs
     action: jax.Array  # (B, act_dim) in [-1, 1]
@@ -88,15 +106,16 @@ class Agent:
 
     @property
     def actor_net(self):
-        return GaussianHead(self.cfg.hidden_sizes, self.act_dim, self.cfg.init)
+        return GaussianHead(self.cfg.hidden_sizes, self.act_dim, self.cfg.init, self.cfg.matmul_precision)
 
     @property
     def critic_net(self):
-        return TwinCritic(self.cfg.hidden_sizes, self.cfg.init)
+        return TwinCritic(self.cfg.hidden_sizes, self.cfg.init, self.cfg.matmul_precision)
 
     @property
     def mc_models(self) -> MCModels:
-        return MCModels(state_dim=self.mc_dim, hidden=self.cfg.mc_hidden_sizes, init_scheme=self.cfg.init)
+        return MCModels(state_dim=self.mc_dim, hidden=self.cfg.mc_hidden_sizes, init_scheme=self.cfg.init,
+                        matmul_precision=self.cfg.matmul_precision)
 
     @property
     def target_entropy(self) -> float:
@@ -154,8 +173,9 @@ class Agent:
         upd, opt = self._opt(lr).update(grads, learned.opt, learned.params)
         return Learned(optax.apply_updates(learned.params, upd), opt)
 
-    def update(self, state: TrainState, batch: Batch) -> TrainState:
+    def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None) -> TrainState:
         cfg = self.cfg
+        h = Hyper.of(cfg) if hyper is None else hyper
         key, k_pi, k_next = jax.random.split(state.key, 3)
         m: dict[str, jax.Array] = {}
 
@@ -163,9 +183,11 @@ class Agent:
         mc_models, norm, bounds = state.mc_models, state.norm, state.bounds
         if cfg.use_mc_models:
             r_mc, kl, norm, bounds, mc_grads, lt, la = self.mc_reward(state, batch)
-            if cfg.mc_alpha > 0:
+            if hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
+                reward = jnp.where(h.mc_alpha > 0, (1.0 - h.mc_alpha) * batch.reward + h.mc_alpha * r_mc, reward)
+            elif cfg.mc_alpha > 0:
                 reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * r_mc
-            mc_models = self._adam(state.mc_models, mc_grads, cfg.mc_lr)
+            mc_models = self._adam(state.mc_models, mc_grads, h.mc_lr)
             m.update(transition_model_loss=lt, action_model_loss=la, mean_mc_reward=r_mc.mean(),
                      mean_raw_kl=kl.mean())
 
@@ -175,7 +197,7 @@ class Agent:
         mean_n, log_std_n = self.actor_net.apply({"params": state.actor}, batch.next_obs)
         a_next, logp_next = tanh_gaussian_sample(mean_n, log_std_n, k_next)
         q_next = self.critic_net.apply({"params": state.q_target}, batch.next_obs, a_next).min(0)
-        target = reward + (1.0 - batch.terminated) * cfg.gamma * (q_next - ent_coef * logp_next)
+        target = reward + (1.0 - batch.terminated) * h.gamma * (q_next - ent_coef * logp_next)
         target = jax.lax.stop_gradient(target)
 
         def critic_loss_fn(params):
@@ -183,7 +205,7 @@ class Agent:
             return 0.5 * jnp.square(q - target[None]).mean(-1).sum(), q.mean()
 
         (critic_loss, q_mean), g = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.critic)
-        q = self._adam(state.q, g, cfg.learning_rate)
+        q = self._adam(state.q, g, h.learning_rate)
 
         # actor (against the updated critics, as stable-baselines3 does)
         def actor_loss_fn(params):
@@ -193,14 +215,14 @@ class Agent:
             return (ent_coef * logp - q_pi).mean(), logp
 
         (actor_loss, logp), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.actor)
-        pi = self._adam(state.pi, g, cfg.learning_rate)
+        pi = self._adam(state.pi, g, h.learning_rate)
 
         # entropy coefficient, from the same (pre-update) policy sample
         ent_target = jax.lax.stop_gradient(logp + self.target_entropy)
         ent_loss, g = jax.value_and_grad(lambda le: -(le * ent_target).mean())(state.ent.params)
-        ent = self._adam(state.ent, g, cfg.learning_rate)
+        ent = self._adam(state.ent, g, h.learning_rate)
 
-        q_target = optax.incremental_update(q.params, state.q_target, cfg.tau)
+        q_target = optax.incremental_update(q.params, state.q_target, h.tau)
 
         m.update(actor_loss=actor_loss, critic_loss=critic_loss, ent_coef=ent_coef, ent_coef_loss=ent_loss,
                  q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean())
@@ -214,10 +236,15 @@ class Agent:
         n = int(state.metric_count)
         if n == 0:
             return {}, state
-        sums = jax.device_get(state.metric_sums)
-        out = {k: float(v) / n for k, v in sums.items()
-               if self.cfg.use_mc_models or k not in MC_METRICS}
-        if self.cfg.use_mc_models:
-            out["mc_bound_low"], out["mc_bound_high"] = (float(x) for x in jax.device_get(state.bounds))
+        out = metric_means(jax.device_get(state.metric_sums), n, jax.device_get(state.bounds),
+                           self.cfg.use_mc_models)
         reset = {k: jnp.float32(0) for k in METRICS}
         return out, state._replace(metric_sums=reset, metric_count=jnp.int32(0))
+
+
+def metric_means(sums: dict, count: int, bounds, with_mc: bool) -> dict[str, float]:
+    """The log row's means from the device sums of `count` gradient steps (MC metrics only `with_mc`)."""
+    out = {k: float(v) / count for k, v in sums.items() if with_mc or k not in MC_METRICS}
+    if with_mc:
+        out["mc_bound_low"], out["mc_bound_high"] = float(bounds[0]), float(bounds[1])
+    return out

@@ -115,9 +115,15 @@ class Trainer:
 
             record_training_video(self.cfg, self.agent, rs.train, self.run_dir, p.step, self.log)
 
-    def log_row(self, rs: RunState, elapsed: float, steps_done: int) -> dict:
+    def final_evaluation(self, rs: RunState) -> None:
+        self.evaluate(rs, self.cfg.n_final_eval_episodes)
+        rundir.write_json_atomic(self.run_dir / rundir.FINAL_EVAL, {"step": rs.progress.step, **rs.progress.last_eval})
+
+    def log_row(self, rs: RunState, elapsed: float, steps_done: int, metrics: dict | None = None) -> dict:
+        """Write the log row; `metrics` are the update's means (read from `rs.train` when not given)."""
         p = rs.progress
-        metrics, rs.train = self.agent.read_metrics(rs.train)
+        if metrics is None:
+            metrics, rs.train = self.agent.read_metrics(rs.train)
         sps = steps_done / elapsed if elapsed > 0 else None
         mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
         row = {"step": p.step, "time_s": round(elapsed, 3), "steps_per_s": sps, "episodes": p.episode,
@@ -134,7 +140,8 @@ class Trainer:
     def close(self) -> None:
         self.log.close()
         self.evaluator.close()
-        self.env.close()
+        if self.env is not None:
+            self.env.close()
 
     def run(self, rs: RunState, bar=None) -> RunState:
         cfg, env, p = self.cfg, self.env, rs.progress
@@ -167,8 +174,7 @@ class Trainer:
                 self.evaluate(rs, cfg.eval_episodes)
             if p.step % cfg.log_every == 0 or p.step == cfg.total_steps:
                 if p.step == cfg.total_steps:  # the final evaluation (thesis: "after training") lands in the last row
-                    self.evaluate(rs, cfg.n_final_eval_episodes)
-                    rundir.write_json_atomic(self.run_dir / rundir.FINAL_EVAL, {"step": p.step, **p.last_eval})
+                    self.final_evaluation(rs)
                 row = self.log_row(rs, time.perf_counter() - t_start, p.step - steps_at_start)
                 if bar is not None:
                     post = {"sps": f"{row['steps_per_s']:.0f}" if row["steps_per_s"] else "-"}
@@ -183,8 +189,9 @@ class Trainer:
         return rs
 
 
-def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True, resume: bool = False) -> Path:
-    """Train; with `resume`, continue `run_dir` from its newest checkpoint (or start it if it has none)."""
+def open_run(cfg: Config, run_dir: Path | str | None, resume: bool):
+    """(env, spec, agent, run_dir, RunState) of a run about to train: new, or from its newest checkpoint with
+    `resume` (new if it has none). Writes its config.json and removes a stale `done`."""
     env, spec, agent, buffer = build(cfg)  # validates env and spaces before anything is written
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
     if not resume and (run_dir / rundir.CONFIG).exists():
@@ -202,6 +209,18 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
     rundir.write_json_atomic(run_dir / rundir.CONFIG, cfg.to_dict())
     for stale in (rundir.DONE, rundir.FINAL_EVAL):
         (run_dir / stale).unlink(missing_ok=True)
+    return env, spec, agent, run_dir, rs
+
+
+def finish_run(trainer: Trainer, rs: RunState) -> None:
+    """The last checkpoint, then `done` (last: a run with `done` is finished, whoever reads it)."""
+    trainer.checkpoint(rs)
+    rundir.write_json_atomic(trainer.run_dir / rundir.DONE, {"step": rs.progress.step, **rs.progress.last_eval})
+
+
+def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True, resume: bool = False) -> Path:
+    """Train; with `resume`, continue `run_dir` from its newest checkpoint (or start it if it has none)."""
+    env, spec, agent, run_dir, rs = open_run(cfg, run_dir, resume)
     trainer = Trainer(cfg, run_dir, env, spec, agent, resume_step=rs.progress.step if resume else None)
     bar = None
     if progress:
@@ -211,8 +230,7 @@ def train(cfg: Config, run_dir: Path | str | None = None, progress: bool = True,
                    mininterval=1.0)
     try:
         rs = trainer.run(rs, bar)
-        trainer.checkpoint(rs)
-        rundir.write_json_atomic(run_dir / rundir.DONE, {"step": rs.progress.step, **rs.progress.last_eval})
+        finish_run(trainer, rs)
     finally:
         if bar is not None:
             bar.close()

@@ -23,7 +23,8 @@ time, since a local worker must set its thread limits before jax is imported):
 - ``worker``: inside a worker process: thread limits (``thread_env``), training one run, dying with
   the driver.
 - ``driver``: the driver's progress lines and bar, and the ``SweepResult``.
-- ``local``: the local backend, one spawned process per run.
+- ``local``: the local backend, one spawned process per run; and the vmap backend, one spawned process per
+  group of runs trained as one vmapped computation (``mcrl.run.group``).
 - ``ray_backend``: the Ray backend, one Ray task per run, shipping files back when the worker cannot
   see ``EXP``.
 - ``tracking``: MLflow logging of finished runs (imported only with ``--tracking``).

@@ -3,7 +3,7 @@
 In order: validate every setting (backend, counts, ``EXP`` against a sweep already in it, the Ray
 address, the tracking URI) while nothing is written; then lock ``EXP``, write ``EXP/sweep.json`` (the
 union of the runs there and the plan's), skip finished runs and hand the others to a backend
-(``local.run_local`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in a background
+(``local.run_local``, ``local.run_vmap`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in a background
 thread (``tracking``), so the next runs start meanwhile.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ from mcrl.config import resolve_config
 from mcrl.errors import MCRLError
 from mcrl.sweep.driver import Driver, SweepResult
 from mcrl.sweep.files import RUNS, run_dir, run_status
-from mcrl.sweep.local import run_local
+from mcrl.sweep.local import run_local, run_vmap
 from mcrl.run.rundir import SWEEP_JSON
 from mcrl.sweep.plan import RunPlan, SweepPlan, jsonable, load_sweep_json, safe_name
 from mcrl.sweep.ray_backend import check_ray_address, import_ray, ray_auth_env, run_ray, start_ray
@@ -93,14 +93,15 @@ def _lock(exp: Path):
 def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str = "local", workers: int | None = None,
               threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
               tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
-              out: Callable[[str], None] | None = None) -> SweepResult:
+              out: Callable[[str], None] | None = None, group_size: int | None = None,
+              env_workers: int = 0) -> SweepResult:
     """Run every unfinished run of `plan` into one experiment directory; see the package docstring.
 
     Raises MCRLError (before writing anything) on bad settings; a run that fails is reported in the
     result (`failed`) while the others go on."""
     # ---- validate everything before EXP exists
-    if backend not in ("local", "ray"):
-        raise MCRLError(f"--backend {backend!r}: choose local or ray")
+    if backend not in ("local", "ray", "vmap"):
+        raise MCRLError(f"--backend {backend!r}: choose local, ray or vmap")
     if not plan.runs:
         raise MCRLError("the sweep has no runs (empty grid): give at least one value per grid key")
     cores = cpu_count()
@@ -112,9 +113,16 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         raise MCRLError(f"--retries {retries}: give 0 or more")
     if gpus_per_run and gpus_per_run < 0:
         raise MCRLError(f"--gpus-per-run {gpus_per_run}: give 0 or more")
-    if backend == "local" and (address or gpus_per_run):
+    if backend != "ray" and (address or gpus_per_run):
         raise MCRLError("--address and --gpus-per-run are for --backend ray: add --backend ray or drop them")
-    n_workers = workers or cores
+    if backend != "vmap" and (group_size is not None or env_workers):
+        raise MCRLError("--group-size and --env-workers are for --backend vmap: add --backend vmap or drop them")
+    if group_size is not None and group_size < 1:
+        raise MCRLError(f"--group-size {group_size}: give at least 1 run per group")
+    if env_workers < 0:
+        raise MCRLError(f"--env-workers {env_workers}: give 0 (environments in the group's process) or more")
+    # vmap: one group at a time by default, using every core
+    n_workers = workers or (1 if backend == "vmap" else cores)
     threads = threads_per_run or max(1, cores // n_workers)
     exp = Path(exp_dir) if exp_dir is not None else default_exp_dir(plan)
     exp = exp.absolute()
@@ -171,7 +179,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         drv.line(f"experiment directory: {exp} ({len(plan.runs)} run{'s' if len(plan.runs) != 1 else ''}, "
                  f"backend {backend}, "
                  f"{'up to ' + str(n_workers) + ' at a time, ' if backend == 'local' or workers else ''}"
-                 f"{threads} thread(s) per run)")
+                 f"{threads} thread(s) per {'group' if backend == 'vmap' else 'run'})")
         others = len(entries) - len(plan.runs)
         if others > 0:
             drv.line(f"note: {SWEEP_JSON} lists {others} more run(s) than this command; "
@@ -193,6 +201,8 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
                     on_finish(next(r for r in plan.runs if r.name == name), {})
         if backend == "local":
             run_local(todo, exp, sweep_id, n_workers, env, retries, drv)
+        elif backend == "vmap":
+            run_vmap(todo, exp, sweep_id, n_workers, env, retries, drv, group_size, env_workers)
         else:
             if workers:
                 limit = workers

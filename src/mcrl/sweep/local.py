@@ -1,10 +1,11 @@
-"""The local backend: one fresh process per run ('spawn' context), at most ``workers`` at a time.
+"""The local backend: one fresh process per job ('spawn' context), at most ``workers`` at a time.
 
-Each worker process starts with the thread limits of ``worker.thread_env`` in its environment (set
-before it imports anything, so before jax), writes straight into ``EXP/runs/<name>/``, dies with the
-driver, and sends one message back through a pipe: ("ok", summary, None) or ("error", why, traceback).
-A worker that dies without a message (killed, out of memory) is retried from its last checkpoint up to
-``retries`` times.
+A job is one run (``--backend local``) or a group of runs trained as one vmapped computation
+(``--backend vmap``, see ``mcrl.run.group``). Each worker process starts with the thread limits of
+``worker.thread_env`` in its environment (set before it imports anything, so before jax), writes straight
+into ``EXP/runs/<name>/``, dies with the driver, and sends one message back through a pipe:
+("ok", {name: summary}, None) or ("error", why, traceback). A worker that dies without a message (killed,
+out of memory) is retried from its runs' last checkpoints up to ``retries`` times.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from mcrl.errors import MCRLError
 from mcrl.sweep.driver import Driver
 from mcrl.sweep.files import run_dir, run_status
 from mcrl.sweep.plan import RunPlan
-from mcrl.sweep.worker import die_with_parent, error_report, patched_environ, train_one
+from mcrl.sweep.worker import die_with_parent, error_report, patched_environ, train_group_runs, train_one
 
 
 def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
@@ -27,8 +28,12 @@ def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
     os.environ.update(env)
     die_with_parent()
     try:
-        summary = train_one(spec["config"], spec["run_dir"])
-        conn.send(("ok", summary, None))
+        if len(spec["runs"]) == 1 and not spec["group"]:
+            (run,) = spec["runs"]
+            summaries = {run["name"]: train_one(run["config"], run["run_dir"])}
+        else:
+            summaries = train_group_runs(spec["runs"], spec["env_workers"])
+        conn.send(("ok", summaries, None))
     except MCRLError as e:
         conn.send(("error", str(e), None))
     except KeyboardInterrupt:
@@ -41,34 +46,48 @@ def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
 
 def run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
               drv: Driver) -> None:
-    """Run `todo` in worker processes, reporting each run's end to `drv`."""
+    """Run `todo` in worker processes, one run each, reporting each run's end to `drv`."""
+    run_jobs([[r] for r in todo], exp, sweep_id, workers, env, retries, drv)
+
+
+def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
+             drv: Driver, group: bool = False, env_workers: int = 0) -> None:
+    """Run each job (its runs as one vmapped group if `group`) in a worker process, at most `workers` at a
+    time, reporting each run's end to `drv`."""
     import multiprocessing as mp
     from multiprocessing.connection import wait
 
     ctx = mp.get_context("spawn")
-    queue = deque((r, 0) for r in todo)
-    running: dict[str, tuple] = {}  # name -> (process, conn, run, attempt, t0)
+    queue = deque((job, 0) for job in jobs)
+    running: dict[str, tuple] = {}  # job label -> (process, conn, runs, attempt, t0)
     try:
         while queue or running:
             while queue and len(running) < workers:
-                run, attempt = queue.popleft()
-                rdir = run_dir(exp, run.name)
-                state, step = run_status(rdir)
-                spec = {"name": run.name, "config": run.config.to_dict(), "run_dir": str(rdir),
+                job, attempt = queue.popleft()
+                spec = {"runs": [{"name": r.name, "config": r.config.to_dict(), "run_dir": str(run_dir(exp, r.name))}
+                                 for r in job], "group": group, "env_workers": env_workers,
                         "exp": str(exp), "sweep_id": sweep_id}
+                label = job[0].name if len(job) == 1 else f"group of {len(job)} ({job[0].name} ...)"
                 reader, writer = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_local_worker, args=(spec, env, writer), name=f"mcrl-{run.name}",
+                proc = ctx.Process(target=_local_worker, args=(spec, env, writer), name=f"mcrl-{job[0].name}",
                                    daemon=True)
                 with patched_environ(env):  # the child's environment from its first instruction on
                     proc.start()
                 writer.close()
-                running[run.name] = (proc, reader, run, attempt, time.monotonic())
-                how = f"resume {run.name} from step {step}" if state == "checkpoint" else f"start {run.name}"
-                drv.set_steps(run.name, step)
-                drv.line(f"{drv.tag()} {how} (pid {proc.pid})")
+                running[label] = (proc, reader, job, attempt, time.monotonic())
+                hows = []
+                for r in job:
+                    state, step = run_status(run_dir(exp, r.name))
+                    drv.set_steps(r.name, step)
+                    hows.append(f"resume {r.name} from step {step}" if state == "checkpoint" else f"start {r.name}")
+                if len(job) == 1:
+                    drv.line(f"{drv.tag()} {hows[0]} (pid {proc.pid})")
+                else:
+                    drv.line(f"{drv.tag()} {label.split(' (')[0]} as one computation (pid {proc.pid}): "
+                             f"{'; '.join(hows)}")
             ready = wait([p.sentinel for p, *_ in running.values()], timeout=1.0)
-            for name in [n for n, (p, *_rest) in running.items() if p.sentinel in ready]:
-                proc, reader, run, attempt, t0 = running.pop(name)
+            for label in [n for n, (p, *_rest) in running.items() if p.sentinel in ready]:
+                proc, reader, job, attempt, t0 = running.pop(label)
                 proc.join()
                 msg = None
                 with contextlib.suppress(EOFError, OSError):
@@ -76,21 +95,24 @@ def run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: 
                         msg = reader.recv()
                 reader.close()
                 if msg is not None and msg[0] == "ok":
-                    drv.done(run, t0, msg[1])
+                    for r in job:
+                        drv.done(r, t0, msg[1][r.name])
                     continue
                 if msg is not None:
-                    drv.failed(name, msg[1], msg[2])
+                    for r in job:
+                        drv.failed(r.name, msg[1], msg[2])
                     continue
                 code = proc.exitcode
                 why = (f"worker killed by signal {-code}" if code is not None and code < 0
                        else f"worker exited with code {code}")
                 if attempt < retries:
-                    drv.line(f"{drv.tag()} {name}: {why}; retrying from its last checkpoint "
+                    drv.line(f"{drv.tag()} {label}: {why}; retrying from its last checkpoint "
                              f"({attempt + 1} of {retries})")
-                    queue.appendleft((run, attempt + 1))
+                    queue.appendleft((job, attempt + 1))
                 else:
-                    drv.failed(name, why)
-            drv.poll(list(running))
+                    for r in job:
+                        drv.failed(r.name, why)
+            drv.poll([r.name for _p, _c, job, *_ in running.values() for r in job])
     finally:
         for proc, *_ in running.values():  # interrupted: stop the runs (each keeps its checkpoints)
             if proc.is_alive():
@@ -101,3 +123,17 @@ def run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: 
                 proc.kill()
                 proc.join()
             reader.close()
+
+
+def run_vmap(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
+             drv: Driver, group_size: int | None = None, env_workers: int = 0) -> None:
+    """The vmap backend: runs whose configs share shapes (``mcrl.run.group.group_key``) and resume from the
+    same step train as one group per worker process; groups of at most `group_size` runs."""
+    from mcrl.run.group import plan_groups  # imports jax: not at this module's import
+
+    by_step: dict[int, list[RunPlan]] = {}
+    for r in todo:
+        by_step.setdefault(run_status(run_dir(exp, r.name))[1], []).append(r)
+    jobs = [[runs[i] for i in ix] for runs in by_step.values()
+            for ix in plan_groups([r.config for r in runs], group_size)]
+    run_jobs(jobs, exp, sweep_id, workers, env, retries, drv, group=True, env_workers=env_workers)

@@ -65,6 +65,15 @@ def train_one(config: dict[str, Any], run_dir: str | Path) -> dict[str, Any]:
     return rundir.read_json(Path(out) / rundir.DONE)
 
 
+def train_group_runs(runs: list[dict[str, Any]], env_workers: int = 0) -> dict[str, dict[str, Any]]:
+    """Train (or resume) `runs` ({name, config, run_dir}) as one vmapped group in this process; their `done`
+    summaries by name."""
+    from mcrl.run.group import train_group  # imports jax: only after the thread limits are set
+
+    dirs = train_group([Config.from_dict(r["config"]) for r in runs], [r["run_dir"] for r in runs], env_workers)
+    return {r["name"]: rundir.read_json(Path(d) / rundir.DONE) for r, d in zip(runs, dirs)}
+
+
 def error_report(e: BaseException) -> tuple[str, str]:
     """(one line for the driver's output, the traceback for sweep-error.log) of an unexpected error."""
     return f"{type(e).__name__}: {e}".splitlines()[0], traceback.format_exc()
