@@ -79,7 +79,7 @@ def test_group_matches_runs_trained_alone(tmp_path):
 
 def _sweep_cmd(exp):
     return [sys.executable, "-m", "mcrl.cli", "sweep", "--preset", "fetchreach-sacmc", "--alphas", "0,0.2",
-            "--seeds", "1", "--steps", "400", "--backend", "vmap", "--exp", str(exp), "--no-progress",
+            "--seeds", "1", "--steps", "400", "--backend", "vmap", "--workers", "1", "--exp", str(exp), "--no-progress",
             "--set", "hidden_sizes=[64,64]", "--set", "mc_hidden_sizes=[64,64]", "--set", "batch_size=64",
             "--set", "buffer_size=5000", "--set", "mc_history=2000", "--set", "checkpoint_every=100",
             "--set", "eval_every=200", "--set", "log_every=50"]
@@ -103,6 +103,7 @@ def test_vmap_sweep_resumes_after_kill9(tmp_path):
     assert not (exp / "runs" / "a0-s0" / "done").exists()
     out = subprocess.run(_sweep_cmd(exp), env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout + out.stderr
+    assert "group of 2 as one computation" in out.stdout, out.stdout
     assert "resume a0-s0 from step" in out.stdout and "resume a0.2-s0 from step" in out.stdout
 
     from mcrl.sweep.plan import load_sweep_json
@@ -150,3 +151,23 @@ def test_vmap_bad_options(tmp_path, args, msg):
                           "--exp", str(tmp_path / "exp"), *args], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and msg in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert not (tmp_path / "exp").exists()
+
+
+def test_vmap_backend_shares_runs_among_workers(tmp_path, monkeypatch):
+    """On a CPU the default is one group per worker (XLA runs a vmapped step on about one core); runs that
+    resume from different steps never share a group."""
+    from mcrl.sweep import local
+    from mcrl.sweep.plan import plan_from_args
+
+    plan = plan_from_args("fetchreach-sacmc", alphas="0,0.2", seeds=3)
+    seen = []
+    monkeypatch.setattr(local, "run_jobs", lambda jobs, *a, **k: seen.append([[r.name for r in j] for j in jobs]))
+    local.run_vmap(plan.runs, tmp_path, "id", 2, {}, 0, None)
+    local.run_vmap(plan.runs, tmp_path, "id", 1, {}, 0, None, group_size=4)
+    ck = tmp_path / "runs" / "a0.2-s1" / "checkpoints"
+    (ck / "step_100").mkdir(parents=True)
+    (ck / "latest").write_text("step_100\n")
+    local.run_vmap(plan.runs, tmp_path, "id", 1, {}, 0, None)
+    assert seen[0] == [["a0-s0", "a0.2-s0", "a0-s1"], ["a0.2-s1", "a0-s2", "a0.2-s2"]]
+    assert seen[1] == [["a0-s0", "a0.2-s0", "a0-s1", "a0.2-s1"], ["a0-s2", "a0.2-s2"]]
+    assert seen[2] == [["a0-s0", "a0.2-s0", "a0-s1", "a0-s2", "a0.2-s2"], ["a0.2-s1"]]

@@ -60,7 +60,7 @@ case "$cmd" in
     echo "started main sweep (log $WORK/main.log)"
     mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
-    # SB3 runs cannot resume: start them (WITH_SB3=1) only with a free core for ~1 h per 150k-step seed
+    # SB3 runs cannot resume: start them (WITH_SB3=1) only with a core free for a whole 150k-step seed (2-3.3 h)
     if [ "${WITH_SB3:-0}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then  # stable-baselines3 reference, seeds 0-2, one after another
       (for s in 0 1 2; do
          d="$WORK/sb3-sac/runs/sb3-sac-s$s"

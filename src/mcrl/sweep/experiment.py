@@ -3,8 +3,8 @@
 In order: validate every setting (backend, counts, ``EXP`` against a sweep already in it, the Ray
 address, the tracking URI) while nothing is written; then lock ``EXP``, write ``EXP/sweep.json`` (the
 union of the runs there and the plan's), skip finished runs and hand the others to a backend
-(``local.run_local``, ``local.run_vmap`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in a background
-thread (``tracking``), so the next runs start meanwhile.
+(``local.run_local``, ``local.run_vmap`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in
+a background thread (``tracking``), so the next runs start meanwhile.
 """
 from __future__ import annotations
 
@@ -90,6 +90,13 @@ def _lock(exp: Path):
     return f
 
 
+def _has_cuda_jax() -> bool:
+    """A CUDA build of jax is installed (the `cuda` extra); found without importing jax."""
+    import importlib.util
+
+    return any(importlib.util.find_spec(m) is not None for m in ("jax_cuda12_plugin", "jax_cuda13_plugin"))
+
+
 def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str = "local", workers: int | None = None,
               threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
               tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
@@ -121,8 +128,8 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         raise MCRLError(f"--group-size {group_size}: give at least 1 run per group")
     if env_workers < 0:
         raise MCRLError(f"--env-workers {env_workers}: give 0 (environments in the group's process) or more")
-    # vmap: one group at a time by default, using every core
-    n_workers = workers or (1 if backend == "vmap" else cores)
+    # vmap: on a CPU one group per core (XLA runs one vmapped step on about one core); on a GPU one group
+    n_workers = workers or (1 if backend == "vmap" and _has_cuda_jax() else cores)
     threads = threads_per_run or max(1, cores // n_workers)
     exp = Path(exp_dir) if exp_dir is not None else default_exp_dir(plan)
     exp = exp.absolute()

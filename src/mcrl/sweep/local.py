@@ -128,12 +128,14 @@ def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, 
 def run_vmap(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
              drv: Driver, group_size: int | None = None, env_workers: int = 0) -> None:
     """The vmap backend: runs whose configs share shapes (``mcrl.run.group.group_key``) and resume from the
-    same step train as one group per worker process; groups of at most `group_size` runs."""
+    same step train as one group per worker process; groups of at most `group_size` runs (default: the runs
+    shared evenly among the `workers` processes)."""
     from mcrl.run.group import plan_groups  # imports jax: not at this module's import
 
     by_step: dict[int, list[RunPlan]] = {}
     for r in todo:
         by_step.setdefault(run_status(run_dir(exp, r.name))[1], []).append(r)
+    size = group_size or max(1, -(-len(todo) // max(1, workers)))
     jobs = [[runs[i] for i in ix] for runs in by_step.values()
-            for ix in plan_groups([r.config for r in runs], group_size)]
+            for ix in plan_groups([r.config for r in runs], size)]
     run_jobs(jobs, exp, sweep_id, workers, env, retries, drv, group=True, env_workers=env_workers)
