@@ -70,11 +70,15 @@ class Member:
     cfg: Config
     trainer: Trainer
     rs: RunState
-    has_mc: bool  # its own MC models (SAC-MC, or SAC measuring MC); False: ballast in the group
     flat: np.ndarray | None = None
     ep_return: float = 0.0
     last_ckpt: int = 0
     ckpt_due: bool = False
+
+    @property
+    def has_mc(self) -> bool:
+        """Its own MC models (SAC-MC, or SAC measuring MC); otherwise it carries ballast in a group with them."""
+        return self.cfg.use_mc_models
 
 
 class Group:
@@ -91,7 +95,7 @@ class Group:
                 env, spec, agent, run_dir, rs = open_run(cfg, d, resume=True)
                 # its env recomputes HER rewards; EnvPool steps it too, or steps its own in worker processes
                 trainer = Trainer(cfg, run_dir, env, spec, agent, resume_step=rs.progress.step)
-                self.members.append(Member(cfg, trainer, rs, cfg.use_mc_models, last_ckpt=rs.progress.step))
+                self.members.append(Member(cfg, trainer, rs, last_ckpt=rs.progress.step))
             steps = {m.rs.progress.step for m in self.members}
             if len(steps) != 1:
                 raise MCRLError(f"the runs of a group must resume from the same step, not {sorted(steps)}: "
