@@ -15,6 +15,20 @@ SB3 would make, checked bit for bit by ``parity_sb3.py check``), which additiona
 gradient step. The alternative, SB3's logger values plus a Q estimate on one extra replay sample in a
 callback, would give ``q_mean`` on a different batch than the one trained on and would draw extra random
 numbers from the replay sampler (changing the run); so the subclass is used.
+
+Checkpoints and resume
+----------------------
+A 150,000-step SB3 run takes 2-3 hours on one core, longer than a machine may live, so a run writes a
+checkpoint every ``checkpoint_every`` steps, at the next episode end, into ``RUN_DIR/sb3_checkpoints/``
+(``keep_checkpoints`` of them; not ``checkpoints/``, which mcrl's own tools read): SB3's ``model.save`` (policy,
+optimisers, entropy coefficient, step counters, the last observation), SB3's ``save_replay_buffer`` and
+``state.pkl`` (torch's, numpy's and Python's global random states; the MuJoCo integration state, goal and
+random generator of the training and evaluation environments; the recorder's counters). ``--resume`` loads
+the newest one and continues; the resumed run is the uninterrupted run bit for bit (``parity_sb3.py
+check-resume`` verifies it, and finds differences when the random states or the environments' MuJoCo states
+are not restored). The whole integration state goes back, the solver's warm start (``qacc_warmstart``)
+included, which a reset does not clear. These files are pickles written by this script: load only your own.
+A finished run deletes its checkpoints (``sb3_model.zip`` keeps the final model).
 """
 from __future__ import annotations
 
@@ -27,6 +41,9 @@ from typing import Any
 #: Per-gradient-step diagnostics ParitySAC sums (all are METRIC_COLUMNS of mcrl.run.logger).
 DIAGNOSTICS = ("actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean", "mean_ext_reward",
                "mean_total_reward")
+
+#: Where an SB3 run keeps its checkpoints (mcrl's tools read ``checkpoints/`` as their own format).
+CHECKPOINTS = "sb3_checkpoints"
 
 # mcrl's evaluation seeding (mcrl.run.trainer): stream 1, episode index round * 100_003 + i. Using the same
 # seeds makes both systems' evaluation rounds play the same start states and goals.
@@ -259,6 +276,88 @@ class Evaluator:
         self.env.close()
 
 
+def sim_snapshot(env) -> dict | None:
+    """The state that decides a MuJoCo env's future: integration state (incl. the solver's warm start),
+    goal and random generator; None for an env without MuJoCo ``model``/``data``."""
+    import mujoco
+    import numpy as np
+
+    u = env.unwrapped
+    model, data = getattr(u, "model", None), getattr(u, "data", None)
+    if not isinstance(data, mujoco.MjData):
+        return None
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    state = np.empty(mujoco.mj_stateSize(model, spec))
+    mujoco.mj_getState(model, data, state, spec)
+    goal = getattr(u, "goal", None)
+    return {"mj_state": state, "goal": None if goal is None else np.array(goal),
+            "np_random": u.np_random.bit_generator.state}
+
+
+def sim_restore(env, snap: dict) -> None:
+    """Put a snapshot of :func:`sim_snapshot` back into an env of the same kind."""
+    import mujoco
+
+    u = env.unwrapped
+    mujoco.mj_setState(u.model, u.data, snap["mj_state"], mujoco.mjtState.mjSTATE_INTEGRATION)
+    mujoco.mj_forward(u.model, u.data)
+    if snap["goal"] is not None:
+        u.goal = snap["goal"].copy()
+    u.np_random.bit_generator.state = snap["np_random"]
+
+
+def _rng_snapshot() -> dict:
+    import random
+
+    import numpy as np
+    import torch
+
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def _rng_restore(snap: dict) -> None:
+    import random
+
+    import numpy as np
+    import torch
+
+    torch.set_rng_state(snap["torch"])
+    np.random.set_state(snap["numpy"])
+    random.setstate(snap["python"])
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    """The newest complete SB3 checkpoint of a run (``state.pkl`` is written last), or None."""
+    done = [p for p in sorted((Path(run_dir) / CHECKPOINTS).glob("step_*")) if (p / "state.pkl").is_file()]
+    return done[-1] if done else None
+
+
+def save_checkpoint(run_dir: Path, model, step: int, state: dict, keep: int) -> Path:
+    """model.zip + replay_buffer.pkl + state.pkl under sb3_checkpoints/step_<N>, written under a temporary
+    name and renamed into place, so a kill at any moment leaves the previous checkpoint usable."""
+    import os
+    import pickle
+    import shutil
+
+    root = Path(run_dir) / CHECKPOINTS
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / f"step_{step:09d}"
+    tmp = root / f".tmp-{final.name}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    model.save(tmp / "model.zip")
+    model.save_replay_buffer(tmp / "replay_buffer.pkl")
+    with open(tmp / "state.pkl", "wb") as f:
+        pickle.dump(state, f, protocol=pickle.HIGHEST_PROTOCOL)
+        f.flush()
+        os.fsync(f.fileno())
+    shutil.rmtree(final, ignore_errors=True)
+    os.rename(tmp, final)
+    for old in sorted(root.glob("step_*"))[:-max(1, keep)]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
 def _write_json_atomic(path: Path, obj: dict) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(obj))
@@ -273,13 +372,17 @@ def _append_csv(path: Path, columns, row: dict) -> None:
             {k: ("" if row.get(k) is None else row[k]) for k in columns})
 
 
-def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bool):
-    """A BaseCallback that writes mcrl's metrics.csv / eval.csv rows at mcrl's points of the loop.
+def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bool, resume: dict | None = None,
+                   checkpoints: bool = True):
+    """A BaseCallback that writes mcrl's metrics.csv / eval.csv rows at mcrl's points of the loop, and
+    the checkpoints.
 
     mcrl, after env step N (and its gradient step): evaluates if N % eval_every == 0 and N < total;
     logs a metrics row if N % log_every == 0 or N == total, doing the final evaluation first at N == total.
     In SB3's loop the gradient step of env step N follows the rollout of step N, so "after step N" is the
-    start of the next rollout (``_on_rollout_start``) or, for the last step, the end of training.
+    start of the next rollout (``_on_rollout_start``) or, for the last step, the end of training. A
+    checkpoint is written there too, once N has passed the next multiple of checkpoint_every and the
+    episode has just ended (``resume`` is the recorder part of the checkpoint resumed from).
     """
     import numpy as np
     from mcrl.envs import success_of
@@ -288,23 +391,30 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
 
     total = cfg.total_steps
     n_final = final_eval_episodes(cfg)
+    every = cfg.checkpoint_every
 
     class Recorder(BaseCallback):
         def __init__(self):
             super().__init__(verbose=0)
-            self.episodes = 0
-            self.eval_round = 0
-            self.interval = {"returns": [], "successes": []}
-            self.last_eval: dict[str, Any] = {"success_rate": None, "mean_return": None}
+            r = resume or {}
+            self.episodes = r.get("episodes", 0)
+            self.eval_round = r.get("eval_round", 0)
+            self.interval = r.get("interval", {"returns": [], "successes": []})
+            self.last_eval: dict[str, Any] = r.get("last_eval", {"success_rate": None, "mean_return": None})
+            self.elapsed0 = r.get("elapsed", 0.0)  # training time before this process (time_s continues)
+            self.done_step = r.get("step", 0)  # the last step whose rows are written
+            self.next_ckpt = (self.done_step // every + 1) * every if every else None
+            self.episode_ended = True  # a fresh run starts at an episode's start, a resumed one too
             self.t_start = time.perf_counter()
             self.bar = None
             if progress:
                 from tqdm import tqdm
 
-                self.bar = tqdm(total=total, unit="step", dynamic_ncols=True, smoothing=0.05, mininterval=1.0)
+                self.bar = tqdm(total=total, initial=self.done_step, unit="step", dynamic_ncols=True,
+                                smoothing=0.05, mininterval=1.0)
 
         def _on_training_start(self) -> None:
-            self.t_start = time.perf_counter()
+            self.t_start = time.perf_counter() - self.elapsed0
 
         def _on_step(self) -> bool:
             for info, done in zip(self.locals["infos"], self.locals["dones"]):
@@ -315,16 +425,18 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
                     if s is not None:
                         self.interval["successes"].append(s)
                     self.episodes += 1
+            self.episode_ended = bool(self.locals["dones"][0])
             if self.bar is not None:
                 self.bar.update(1)
             return True
 
         def _on_rollout_start(self) -> None:
-            if self.num_timesteps > 0:
+            if self.num_timesteps > self.done_step:  # a resumed run has written step N's rows already
                 self._after_step(self.num_timesteps)
 
         def _on_training_end(self) -> None:
-            self._after_step(self.num_timesteps)
+            if self.num_timesteps > self.done_step:
+                self._after_step(self.num_timesteps)
 
         def _evaluate(self, step: int, episodes: int) -> None:
             res = evaluator.run(self.model, self.eval_round, episodes)
@@ -355,6 +467,20 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
                     if self.last_eval["success_rate"] is not None:
                         post["success"] = f"{self.last_eval['success_rate']:.2f}"
                     self.bar.set_postfix(post, refresh=False)
+            self.done_step = step
+            if checkpoints and every and step >= self.next_ckpt and self.episode_ended and step < total:
+                self._checkpoint(step)
+                self.next_ckpt = (step // every + 1) * every
+
+        def _checkpoint(self, step: int) -> None:
+            recorder = {"step": step, "episodes": self.episodes, "eval_round": self.eval_round,
+                        "interval": self.interval, "last_eval": self.last_eval,
+                        "elapsed": time.perf_counter() - self.t_start}
+            state = {"recorder": recorder, "diagnostics": (dict(model.diag_sums), model.diag_count),
+                     "rng": _rng_snapshot(), "train_env": sim_snapshot(model.get_env().envs[0]),
+                     "eval_env": sim_snapshot(evaluator.env),
+                     "action_space": model.action_space.np_random.bit_generator.state}
+            save_checkpoint(run_dir, model, step, state, cfg.keep_checkpoints)
 
         def close(self) -> None:
             if self.bar is not None:
@@ -363,45 +489,103 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
     return Recorder()
 
 
-#: Files an SB3 parity run writes (removed first by --overwrite).
+#: Files an SB3 parity run writes (removed first by --overwrite; CHECKPOINTS too).
 RUN_FILES = ("config.json", "peer.json", "metrics.csv", "eval.csv", "final_eval.json", "done", "sb3_model.zip")
 
 
-def train(cfg, run_dir: Path, threads: int = 1, progress: bool = True, overwrite: bool = False) -> Path:
-    """Train SB3 SAC(+HER) with ``cfg`` into ``run_dir`` (an mcrl-format run directory)."""
+def _resume_model(cfg, ckpt: Path, evaluator: Evaluator):
+    """ParitySAC, its replay buffer, the random states and both environments as they were at ``ckpt``;
+    returns (model, the recorder's state)."""
+    import pickle
+
+    from mcrl.envs import make_env
+
+    with open(ckpt / "state.pkl", "rb") as f:
+        state = pickle.load(f)
+    env = make_env(cfg)
+    check_mirrorable(cfg, env)
+    # force_reset=False keeps the saved last observation; load() re-seeds everything (set_random_seed), so
+    # the saved random states go back afterwards.
+    model = make_parity_sac_class().load(ckpt / "model.zip", env=env, device="cpu", force_reset=False)
+    model.load_replay_buffer(ckpt / "replay_buffer.pkl", truncate_last_traj=False)  # an episode had ended
+    vec = model.get_env()
+    vec._reset_seeds()  # load() asked for a seeded reset: the original run's next reset was unseeded
+    vec.envs[0].reset()  # the wrappers' episode counters start afresh, as after the original's auto-reset
+    sim_restore(vec.envs[0], state["train_env"])
+    if state["eval_env"] is not None:
+        sim_restore(evaluator.env, state["eval_env"])
+    model.action_space.np_random.bit_generator.state = state["action_space"]
+    model.diag_sums, model.diag_count = dict(state["diagnostics"][0]), state["diagnostics"][1]
+    _rng_restore(state["rng"])
+    return model, state["recorder"]
+
+
+def train(cfg, run_dir: Path, threads: int = 1, progress: bool = True, overwrite: bool = False,
+          resume: bool = False) -> Path:
+    """Train SB3 SAC(+HER) with ``cfg`` into ``run_dir`` (an mcrl-format run directory).
+
+    ``resume`` continues the run in ``run_dir`` from its newest checkpoint (``cfg`` must be its config).
+    """
+    import shutil
+
     import torch
 
     run_dir = Path(run_dir)
-    if (run_dir / "config.json").exists():
+    if resume:
+        if (run_dir / "done").exists():
+            raise FileExistsError(f"{run_dir} is finished: there is nothing to resume")
+        ckpt = latest_checkpoint(run_dir)
+        if ckpt is None:
+            raise FileNotFoundError(f"{run_dir} has no SB3 checkpoint to resume from (it died before its first "
+                                    "one, or is not an SB3 run): start it again with --overwrite")
+    elif (run_dir / "config.json").exists():
         if not overwrite:
-            raise FileExistsError(f"{run_dir} already holds a run (SB3 runs cannot be resumed): choose another "
-                                  "--run-dir or pass --overwrite")
+            raise FileExistsError(f"{run_dir} already holds a run: continue it with --resume, replace it with "
+                                  "--overwrite, or choose another --run-dir")
         for name in RUN_FILES:
             (run_dir / name).unlink(missing_ok=True)
+        shutil.rmtree(run_dir / CHECKPOINTS, ignore_errors=True)
 
     torch.set_num_threads(threads)
-    model, _ = build_model(cfg)  # validates before anything is written
     import stable_baselines3
 
-    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS
-
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(cfg.to_json())
-    (run_dir / "peer.json").write_text(json.dumps({
-        "system": "stable-baselines3", "version": stable_baselines3.__version__,
-        "torch": torch.__version__, "torch_threads": torch.get_num_threads()}, indent=2) + "\n")
-    import csv
-
-    for name, cols in (("metrics.csv", METRIC_COLUMNS), ("eval.csv", EVAL_COLUMNS)):
-        with open(run_dir / name, "w", newline="") as f:
-            csv.DictWriter(f, fieldnames=cols).writeheader()
+    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS, truncate_rows
 
     evaluator = Evaluator(cfg)
-    recorder = _make_recorder(cfg, run_dir, model, evaluator, progress)
     try:
-        model.learn(total_timesteps=cfg.total_steps, callback=recorder)
+        if resume:
+            model, rec_state = _resume_model(cfg, ckpt, evaluator)
+            step = rec_state["step"]
+            for name, cols in (("metrics.csv", METRIC_COLUMNS), ("eval.csv", EVAL_COLUMNS)):
+                truncate_rows(run_dir / name, cols, step)  # rows a killed process wrote after its checkpoint
+            peer = json.loads((run_dir / "peer.json").read_text())
+            peer["resumed_at"] = [*peer.get("resumed_at", []), step]
+            (run_dir / "peer.json").write_text(json.dumps(peer, indent=2) + "\n")
+        else:
+            model, _ = build_model(cfg)  # validates before anything is written
+            rec_state = None
+            run_dir.mkdir(parents=True, exist_ok=True)
+            (run_dir / "config.json").write_text(cfg.to_json())
+            (run_dir / "peer.json").write_text(json.dumps({
+                "system": "stable-baselines3", "version": stable_baselines3.__version__,
+                "torch": torch.__version__, "torch_threads": torch.get_num_threads()}, indent=2) + "\n")
+            import csv
+
+            for name, cols in (("metrics.csv", METRIC_COLUMNS), ("eval.csv", EVAL_COLUMNS)):
+                with open(run_dir / name, "w", newline="") as f:
+                    csv.DictWriter(f, fieldnames=cols).writeheader()
+    except BaseException:
+        evaluator.close()
+        raise
+
+    checkpoints = cfg.save_buffer and sim_snapshot(model.get_env().envs[0]) is not None
+    recorder = _make_recorder(cfg, run_dir, model, evaluator, progress, rec_state, checkpoints)
+    try:
+        model.learn(total_timesteps=cfg.total_steps - model.num_timesteps, callback=recorder,
+                    reset_num_timesteps=not resume)
         model.save(run_dir / "sb3_model.zip")  # the policy and optimisers (not the replay buffer)
         _write_json_atomic(run_dir / "done", {"step": int(model.num_timesteps), **recorder.last_eval})
+        shutil.rmtree(run_dir / CHECKPOINTS, ignore_errors=True)  # finished: the replay buffers are dead weight
     finally:
         recorder.close()
         evaluator.close()
@@ -432,3 +616,72 @@ def check_train_equivalence(steps: int = 400, seed: int = 0, preset: str = "fetc
         model.get_env().close()
     diff = max(float((a - b).abs().max()) for a, b in zip(*params))
     return {"steps": steps, "max_abs_diff": diff, "identical": diff == 0.0 and not math.isnan(diff)}
+
+
+def _params(run_dir: Path) -> list:
+    """Every parameter of a finished run's sb3_model.zip (actor, critics, target critics, log ent_coef)."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    _, params, variables = load_from_zip_file(run_dir / "sb3_model.zip", device="cpu")
+    return [t for name in sorted(params) for t in params[name].values() if hasattr(t, "shape")] + \
+        [variables[k] for k in sorted(variables or {})]
+
+
+def check_resume_equivalence(workdir: Path, steps: int = 600, kill_after: int = 400, seed: int = 0,
+                             preset: str = "fetchpush-sac") -> dict:
+    """Run A trains ``steps`` steps uninterrupted; run B is the same run killed (SIGKILL) once its
+    checkpoint at ``kill_after`` steps and a metrics row after it exist, then resumed. Compares their final parameters and every
+    metrics.csv / eval.csv value (wall-clock columns aside).
+
+    Returns {"steps", "killed_at", "resumed_from", "max_abs_diff", "rows_equal", "identical"}.
+    """
+    import csv
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import torch
+    from mcrl.config import resolve_config
+
+    workdir = Path(workdir)
+    sets = {"total_steps": steps, "checkpoint_every": kill_after // 2, "keep_checkpoints": 3, "eval_every": 200,
+            "eval_episodes": 2, "log_every": 100, "final_eval_episodes": 2, "seed": seed}
+    cfg = resolve_config(preset, sets)
+    train(cfg, workdir / "a", progress=False, overwrite=True)
+
+    b = workdir / "b"
+    script = Path(__file__).with_name("parity_sb3.py")
+    cmd = [sys.executable, str(script), "sb3", "--preset", preset, "--seed", str(seed), "--steps", str(steps),
+           "--run-dir", str(b), "--overwrite", "--no-progress", "--threads", "1"]
+    cmd += [a for k, v in sets.items() if k not in ("total_steps", "seed") for a in ("--set", f"{k}={v}")]
+    proc = subprocess.Popen(cmd, env={**os.environ, "OMP_NUM_THREADS": "1"}, start_new_session=True)
+    target = b / CHECKPOINTS / f"step_{kill_after:09d}" / "state.pkl"
+
+    def last_row() -> int:
+        try:
+            with open(b / "metrics.csv", newline="") as f:
+                return max((int(r["step"]) for r in csv.DictReader(f)), default=0)
+        except (OSError, ValueError, KeyError):
+            return 0
+
+    # Kill once rows past the checkpoint exist: the resume must drop them and write them again.
+    while proc.poll() is None and not (target.exists() and last_row() > kill_after):
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    if not target.exists() or (b / "done").exists():
+        raise RuntimeError(f"the run in {b} was not killed between its checkpoint at {kill_after} and its end")
+    killed_at = last_row()
+    resumed_from = int(latest_checkpoint(b).name.split("_")[1])
+    torch.set_num_threads(1)
+    train(cfg, b, progress=False, resume=True)
+
+    diff = max(float((x - y).detach().abs().max()) for x, y in zip(_params(workdir / "a"), _params(b)))
+    def rows_of(path: Path) -> list[dict]:  # every column but the wall-clock ones
+        with open(path, newline="") as f:
+            return [{k: v for k, v in r.items() if k not in ("time_s", "steps_per_s")} for r in csv.DictReader(f)]
+
+    rows = {name: rows_of(workdir / "a" / name) == rows_of(b / name) for name in ("metrics.csv", "eval.csv")}
+    return {"steps": steps, "killed_at": killed_at, "resumed_from": resumed_from, "max_abs_diff": diff,
+            "rows_equal": rows, "identical": diff == 0.0 and all(rows.values())}

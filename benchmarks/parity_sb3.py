@@ -4,12 +4,15 @@ Two subcommands (run from the repository root; the ``sb3`` one needs ``pip insta
 
     python benchmarks/parity_sb3.py sb3 --seed N [--steps 150000] [--preset fetchpush-sac]
                                         [--set key=value ...] [--threads 1] --run-dir DIR [--overwrite]
+    python benchmarks/parity_sb3.py sb3 --resume --run-dir DIR
     python benchmarks/parity_sb3.py compare --mcrl RUN_DIR... --sb3 RUN_DIR... --out DIR [--every 5000]
 
 ``sb3`` trains stable-baselines3's SAC with ``HerReplayBuffer`` at exactly the settings of an mcrl preset
 (read from ``mcrl.config.resolve_config``) and writes an mcrl-format run directory (``config.json``,
 ``metrics.csv``, ``eval.csv``, ``final_eval.json``, ``done``, plus ``peer.json`` naming the system and
-``sb3_model.zip``), so the same tools read both. Options SB3 cannot mirror fail with a message.
+``sb3_model.zip``), so the same tools read both. Options SB3 cannot mirror fail with a message. It writes
+checkpoints every ``checkpoint_every`` steps; ``--resume`` continues a killed run exactly where its last
+checkpoint left it.
 
 ``compare`` reads run directories of both systems (partial runs too) and writes ``DIR/parity.md`` (tables
 every ``--every`` steps of mean Q, entropy coefficient, critic loss and evaluation success per system and
@@ -17,6 +20,8 @@ seed, and a per-system summary) and ``DIR/parity.png`` (2x2 panels).
 
 ``check`` (a self-test) trains stock SB3 SAC and this script's SAC subclass side by side for a few hundred
 steps and confirms their parameters are bit-identical, i.e. that recording the diagnostics changes nothing.
+``check-resume`` (a self-test) kills an SB3 run with SIGKILL after a checkpoint, resumes it, and confirms
+that it ends bit-identical to the same run uninterrupted.
 
 See docs/parity.md.
 """
@@ -58,22 +63,35 @@ def cmd_sb3(args: argparse.Namespace) -> int:
     # Before torch (and numpy's BLAS) load: one OpenMP thread per process unless the caller said otherwise.
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     _ensure_mcrl_on_path()
-    from mcrl.config import parse_set, resolve_config
+    from mcrl.config import Config, parse_set, resolve_config
     from mcrl.errors import MCRLError
 
-    try:
-        overrides = parse_set(args.set or [])
-        for key in ("seed", "total_steps"):
-            if key in overrides:
-                return _die(f"give {key} with --{'seed' if key == 'seed' else 'steps'}, not --set {key}=...")
-        overrides["seed"] = args.seed
-        if args.steps is not None:
-            overrides["total_steps"] = args.steps
-        cfg = resolve_config(args.preset, overrides)
-    except MCRLError as e:
-        return _die(str(e))
     if args.threads < 1:
         return _die(f"--threads {args.threads}: give at least 1")
+    if args.resume and args.overwrite:
+        return _die("--resume continues the run in --run-dir and --overwrite replaces it: give one of them")
+    try:
+        if args.resume:  # the run's own config: nothing may change it
+            given = [f"--{k}" for k in ("seed", "steps", "preset", "set") if getattr(args, k) is not None]
+            if given:
+                return _die(f"--resume continues {args.run_dir} with its config.json: drop {', '.join(given)}")
+            path = args.run_dir / "config.json"
+            if not path.is_file():
+                return _die(f"{args.run_dir} holds no run to resume (no config.json): start it without --resume")
+            cfg = Config.from_run_json(json.loads(path.read_text()))
+        else:
+            if args.seed is None:
+                return _die("give --seed N (or --resume to continue a run)")
+            overrides = parse_set(args.set or [])
+            for key in ("seed", "total_steps"):
+                if key in overrides:
+                    return _die(f"give {key} with --{'seed' if key == 'seed' else 'steps'}, not --set {key}=...")
+            overrides["seed"] = args.seed
+            if args.steps is not None:
+                overrides["total_steps"] = args.steps
+            cfg = resolve_config(args.preset or "fetchpush-sac", overrides)
+    except (MCRLError, ValueError) as e:
+        return _die(str(e))
     try:
         import _sb3
     except ImportError as e:  # pragma: no cover
@@ -85,14 +103,27 @@ def cmd_sb3(args: argparse.Namespace) -> int:
         return _die(f"{e.name} is not installed: pip install -e \".[bench]\" (torch and stable-baselines3)")
     try:
         run_dir = _sb3.train(cfg, args.run_dir, threads=args.threads, progress=not args.no_progress,
-                             overwrite=args.overwrite)
-    except (_sb3.UnsupportedConfig, FileExistsError, MCRLError) as e:
+                             overwrite=args.overwrite, resume=args.resume)
+    except (_sb3.UnsupportedConfig, FileExistsError, FileNotFoundError, MCRLError) as e:
         return _die(f"cannot mirror this config in stable-baselines3: {e}" if isinstance(e, _sb3.UnsupportedConfig)
                     else str(e))
     done = json.loads((Path(run_dir) / "done").read_text())
     print(f"{run_dir}: step {done['step']}, final success {done.get('success_rate')}, "
           f"mean return {done.get('mean_return')}")
     return 0
+
+
+def cmd_check_resume(args: argparse.Namespace) -> int:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    _ensure_mcrl_on_path()
+    import tempfile
+
+    import _sb3
+
+    with tempfile.TemporaryDirectory(prefix="mcrl-sb3-resume-") as tmp:
+        res = _sb3.check_resume_equivalence(Path(tmp), steps=args.steps, kill_after=args.kill_after, seed=args.seed)
+    print(json.dumps(res))
+    return 0 if res["identical"] else 1
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -359,14 +390,16 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     s = sub.add_parser("sb3", help="train stable-baselines3 SAC+HER at an mcrl preset's settings")
-    s.add_argument("--seed", type=int, required=True)
+    s.add_argument("--seed", type=int, help="the run's seed (required unless --resume)")
     s.add_argument("--steps", type=int, help="total environment steps (default: the preset's, 150,000)")
-    s.add_argument("--preset", default="fetchpush-sac", help="mcrl preset (default fetchpush-sac)")
+    s.add_argument("--preset", help="mcrl preset (default fetchpush-sac)")
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
-    s.add_argument("--run-dir", type=Path, required=True, help="run directory to create")
+    s.add_argument("--run-dir", type=Path, required=True, help="run directory to create (or to resume)")
     s.add_argument("--threads", type=int, default=1,
                    help="torch intra-op threads (default 1; also OMP_NUM_THREADS unless set)")
     s.add_argument("--overwrite", action="store_true", help="replace the run in --run-dir")
+    s.add_argument("--resume", action="store_true",
+                   help="continue the run in --run-dir from its newest checkpoint (sb3_checkpoints/)")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_sb3)
 
@@ -381,6 +414,13 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--steps", type=int, default=400)
     k.add_argument("--seed", type=int, default=0)
     k.set_defaults(func=cmd_check)
+
+    r = sub.add_parser("check-resume", help="self-test: an SB3 run killed with SIGKILL and resumed from its "
+                       "checkpoint ends bit-identical to the uninterrupted run")
+    r.add_argument("--steps", type=int, default=600)
+    r.add_argument("--kill-after", type=int, default=400, help="checkpoint step to kill after (even, < --steps)")
+    r.add_argument("--seed", type=int, default=0)
+    r.set_defaults(func=cmd_check_resume)
 
     args = p.parse_args(argv)
     return args.func(args)
