@@ -2,6 +2,9 @@
 # Start or resume the FetchPush reproduction (issue 9) from a clone of one fixed commit, in the background.
 #
 #   bash docs/reproduction/fetchpush/run.sh start   # clone + install (once), then start what is unfinished
+#     WORKERS=N  runs at once in the main sweep (2);  MAIN=0  leave the main sweep alone
+#     HOLD_AFTER=N  pause every run the main sweep starts after its first N (they could not finish in time)
+#     WITH_SB3=1 the stable-baselines3 reference too (SB3_THREADS, default 2);  WITH_VARIANT=1 the third arm
 #   bash docs/reproduction/fetchpush/run.sh sync    # copy finished runs' small files here (then git commit them)
 #   bash docs/reproduction/fetchpush/run.sh status
 #
@@ -55,22 +58,53 @@ case "$cmd" in
     M="$CODE/.venv/bin/mcrl"
     mkdir -p "$WORK/sb3-sac/runs"
     # SAC and SAC-MC 0.2, seed-major order (s0 of both arms first), 2 runs at a time, 1 thread each
-    nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
-      --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
-    echo "started main sweep (log $WORK/main.log)"
+    if [ "${MAIN:-1}" = 0 ]; then
+      echo "main sweep not started (MAIN=0)"
+    elif pgrep -f "sweep .*--exp $WORK/main( |$)" > /dev/null; then
+      echo "main sweep already running (log $WORK/main.log)"
+    else
+      nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
+        --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
+      echo "started main sweep (log $WORK/main.log)"
+      if [ -n "${HOLD_AFTER:-}" ]; then
+        # Only git outlives a session: a run started too late to finish before the machine goes is lost. Let
+        # the first HOLD_AFTER runs this sweep starts go on and pause (SIGSTOP) any later one; it dies with the
+        # session and starts afresh in the next (kill -CONT PID lets it go on after all).
+        (while pgrep -f "sweep .*--exp $WORK/main( |$)" > /dev/null; do
+           grep -oE "(start [^ ]*|resume [^ ]* from step [0-9]*) \(pid [0-9]*\)" "$WORK/main.log" | tail -n +"$((HOLD_AFTER + 1))" | grep -o "[0-9]*)" |
+             tr -d ')' | while read -r pid; do
+               [ "$(ps -o stat= -p "$pid" 2>/dev/null | cut -c1)" = T ] || { kill -STOP "$pid" 2>/dev/null && echo "$(date +%T) paused pid $pid"; }
+             done
+           sleep 5
+         done) > "$WORK/hold.log" 2>&1 &
+        echo "runs after the first $HOLD_AFTER will be paused (log $WORK/hold.log)"
+      fi
+    fi
     mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
-    # SB3 runs cannot resume: start them (WITH_SB3=1) only with a core free for a whole 150k-step seed (2-3.3 h)
-    if [ "${WITH_SB3:-0}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then  # stable-baselines3 reference, seeds 0-2, one after another
+    # The stable-baselines3 reference, seeds 0-2 one after another, from its own commit (sb3-sac/COMMIT: the
+    # runner gained checkpoints after COMMIT). Checkpoints live on this machine only, so start it when a whole
+    # seed fits the time left: about 50 min with SB3_THREADS=2 on an otherwise idle 2-core machine.
+    if [ "${WITH_SB3:-0}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then
+      SB3_COMMIT="$(cat "$HERE/sb3-sac/COMMIT")"
+      SB3_CODE="$WORK/mcrl-$SB3_COMMIT"
+      if [ ! -x "$SB3_CODE/.venv/bin/python" ] || [ ! -f "$SB3_CODE/.venv/.bench" ]; then
+        [ -d "$SB3_CODE" ] || { git clone -q "$REPO" "$SB3_CODE" && git -C "$SB3_CODE" checkout -q "$SB3_COMMIT"; }
+        (cd "$SB3_CODE" && make install && .venv/bin/pip install -q -e ".[bench]" && touch .venv/.bench)
+      fi
       (for s in 0 1 2; do
          d="$WORK/sb3-sac/runs/sb3-sac-s$s"
          [ -f "$d/done" ] && continue
-         "$CODE/.venv/bin/python" "$CODE/benchmarks/parity_sb3.py" sb3 --preset fetchpush-sac --seed $s \
-           --threads 1 --run-dir "$d" --overwrite
+         how=--overwrite; ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1 && how=--resume
+         if [ "$how" = --resume ]; then args=(--resume); else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
+         "$SB3_CODE/.venv/bin/python" "$SB3_CODE/benchmarks/parity_sb3.py" sb3 "${args[@]}" \
+           --threads "${SB3_THREADS:-2}" --run-dir "$d" --no-progress
        done) > "$WORK/sb3.log" 2>&1 &
       echo "started stable-baselines3 seeds 0-2 (log $WORK/sb3.log)"
     fi
-    if [ "${WITH_VARIANT:-0}" = 1 ]; then  # the thesis' code's MC reward: after the first two arms
+    if [ "${WITH_VARIANT:-0}" = 1 ] && pgrep -f "sweep .*--exp $WORK/code-variant( |$)" > /dev/null; then
+      echo "code-variant sweep already running"
+    elif [ "${WITH_VARIANT:-0}" = 1 ]; then  # the thesis' code's MC reward: after the first two arms
       nohup "$M" sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 \
         --workers 1 --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
       echo "started the code-variant sweep (log $WORK/code-variant.log)"
