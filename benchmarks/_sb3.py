@@ -630,8 +630,8 @@ def _params(run_dir: Path) -> list:
 def check_resume_equivalence(workdir: Path, steps: int = 600, kill_after: int = 400, seed: int = 0,
                              preset: str = "fetchpush-sac") -> dict:
     """Run A trains ``steps`` steps uninterrupted; run B is the same run killed (SIGKILL) once its
-    checkpoint at ``kill_after`` steps and a metrics row after it exist, then resumed. Compares their final parameters and every
-    metrics.csv / eval.csv value (wall-clock columns aside).
+    checkpoint at ``kill_after`` steps and a metrics row after it exist, then resumed. Compares their final
+    parameters and every metrics.csv / eval.csv value (wall-clock columns aside).
 
     Returns {"steps", "killed_at", "resumed_from", "max_abs_diff", "rows_equal", "identical"}.
     """
@@ -678,6 +678,7 @@ def check_resume_equivalence(workdir: Path, steps: int = 600, kill_after: int = 
     train(cfg, b, progress=False, resume=True)
 
     diff = max(float((x - y).detach().abs().max()) for x, y in zip(_params(workdir / "a"), _params(b)))
+
     def rows_of(path: Path) -> list[dict]:  # every column but the wall-clock ones
         with open(path, newline="") as f:
             return [{k: v for k, v in r.items() if k not in ("time_s", "steps_per_s")} for r in csv.DictReader(f)]

@@ -3,10 +3,10 @@
     python benchmarks/vmap_equivalence.py VMAP_EXP LOCAL_EXP [--json out.json]
 
 Both arguments are experiment directories of `mcrl sweep` over the same grid (same preset, alphas and seeds),
-one per backend, e.g. (about 50 min on an idle 2-core machine)::
+one per backend, e.g. (the check in docs/performance.md)::
 
-    mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 4 --backend vmap --exp EXP/vmap
-    mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 4 --backend local --exp EXP/local
+    mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 3 --backend vmap --exp EXP/vmap
+    mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 3 --backend local --exp EXP/local
 
 The first gradient steps of a vmapped run equal the run alone to float tolerance (tests/test_vmap.py); after
 thousands of steps float reassociation has grown into different trajectories, so runs are not compared step for
@@ -29,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
+from mcrl.analysis.stats import bootstrap_ci  # noqa: E402
 from mcrl.run.rundir import read_json, read_rows  # noqa: E402
 
 N_BOOT = 10_000
@@ -52,10 +53,8 @@ def read_runs(exp: Path) -> dict[tuple[float, int], dict[str, float]]:
 
 def paired_ci(diffs: np.ndarray, seed: int = 0) -> tuple[float, float, float]:
     """Mean of the paired differences and its 95% percentile-bootstrap interval over the pairs."""
-    rng = np.random.default_rng(seed)
-    boots = diffs[rng.integers(0, len(diffs), size=(N_BOOT, len(diffs)))].mean(axis=1)
-    lo, hi = np.percentile(boots, [2.5, 97.5])
-    return float(diffs.mean()), float(lo), float(hi)
+    lo, hi = bootstrap_ci(diffs, n_boot=N_BOOT, rng=seed)
+    return float(diffs.mean()), lo, hi
 
 
 def compare(vmap: dict, local: dict) -> dict:
