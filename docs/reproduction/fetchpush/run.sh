@@ -4,7 +4,8 @@
 #   bash docs/reproduction/fetchpush/run.sh start   # clone + install (once), then start what is unfinished
 #     WORKERS=N  runs at once in the main sweep (2);  MAIN=0  leave the main sweep alone
 #     HOLD_AFTER=N  pause every run the main sweep starts after its first N (they could not finish in time)
-#     WITH_SB3=1 the stable-baselines3 reference too (SB3_THREADS, default 2);  WITH_VARIANT=1 the third arm
+#     WITH_SB3=1 the stable-baselines3 reference too (SB3_SEEDS, default "0 1 2", one after another; SB3_THREADS,
+#     default 2);  WITH_VARIANT=1 the third arm
 #   bash docs/reproduction/fetchpush/run.sh sync    # copy finished runs' small files here (then git commit them)
 #   bash docs/reproduction/fetchpush/run.sh status
 #
@@ -37,6 +38,11 @@ case "$cmd" in
     for arm in $ARMS; do
       echo "$arm: $(ls -d "$WORK/$arm"/runs/*/done 2>/dev/null | wc -l) finished;" \
            "$(ls -d "$HERE/$arm"/runs/*/done 2>/dev/null | wc -l) committed"
+    done
+    for d in "$WORK"/*/runs/*/; do  # runs in progress: the last logged step
+      if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
+        echo "  in progress: $(basename "$(dirname "$(dirname "$d")")")/$(basename "$d") at step $(tail -1 "$d/metrics.csv" | cut -d, -f1)"
+      fi
     done ;;
   start)
     if [ ! -x "$CODE/.venv/bin/mcrl" ]; then
@@ -82,25 +88,35 @@ case "$cmd" in
     fi
     mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
-    # The stable-baselines3 reference, seeds 0-2 one after another, from its own commit (sb3-sac/COMMIT: the
-    # runner gained checkpoints after COMMIT). Checkpoints live on this machine only, so start it when a whole
-    # seed fits the time left: about 50 min with SB3_THREADS=2 on an otherwise idle 2-core machine.
-    if [ "${WITH_SB3:-0}" = 1 ] && ! pgrep -f "parity_sb3.py sb3" > /dev/null; then
+    # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2) one after another, from its own commit
+    # (sb3-sac/COMMIT: the runner gained checkpoints after COMMIT). A seed already running is left alone, so a
+    # second `start` with other SB3_SEEDS runs them beside the first. Checkpoints (every 10,000 steps) live on
+    # this machine only: a run unfinished when the machine goes restarts from scratch on the next one.
+    if [ "${WITH_SB3:-0}" = 1 ]; then
       SB3_COMMIT="$(cat "$HERE/sb3-sac/COMMIT")"
       SB3_CODE="$WORK/mcrl-$SB3_COMMIT"
       if [ ! -x "$SB3_CODE/.venv/bin/python" ] || [ ! -f "$SB3_CODE/.venv/.bench" ]; then
         [ -d "$SB3_CODE" ] || { git clone -q "$REPO" "$SB3_CODE" && git -C "$SB3_CODE" checkout -q "$SB3_COMMIT"; }
         (cd "$SB3_CODE" && make install && .venv/bin/pip install -q -e ".[bench]" && touch .venv/.bench)
       fi
-      (for s in 0 1 2; do
-         d="$WORK/sb3-sac/runs/sb3-sac-s$s"
-         [ -f "$d/done" ] && continue
-         how=--overwrite; ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1 && how=--resume
-         if [ "$how" = --resume ]; then args=(--resume); else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
-         "$SB3_CODE/.venv/bin/python" "$SB3_CODE/benchmarks/parity_sb3.py" sb3 "${args[@]}" \
-           --threads "${SB3_THREADS:-2}" --run-dir "$d" --no-progress
-       done) > "$WORK/sb3.log" 2>&1 &
-      echo "started stable-baselines3 seeds 0-2 (log $WORK/sb3.log)"
+      seeds=()
+      for s in ${SB3_SEEDS:-0 1 2}; do
+        d="$WORK/sb3-sac/runs/sb3-sac-s$s"
+        if [ -f "$d/done" ]; then continue; fi
+        if pgrep -f "parity_sb3.py sb3 .*--run-dir $d( |$)" > /dev/null; then echo "stable-baselines3 seed $s already running"; continue; fi
+        seeds+=("$s")
+      done
+      if [ "${#seeds[@]}" -gt 0 ]; then
+        log="$WORK/sb3-s$(IFS=-; echo "${seeds[*]}").log"
+        (for s in "${seeds[@]}"; do
+           d="$WORK/sb3-sac/runs/sb3-sac-s$s"
+           if ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1; then args=(--resume)
+           else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
+           "$SB3_CODE/.venv/bin/python" "$SB3_CODE/benchmarks/parity_sb3.py" sb3 "${args[@]}" \
+             --threads "${SB3_THREADS:-2}" --run-dir "$d" --no-progress
+         done) > "$log" 2>&1 &
+        echo "started stable-baselines3 seed(s) ${seeds[*]} (log $log)"
+      fi
     fi
     if [ "${WITH_VARIANT:-0}" = 1 ] && pgrep -f "sweep .*--exp $WORK/code-variant( |$)" > /dev/null; then
       echo "code-variant sweep already running"
