@@ -76,7 +76,8 @@ case "$cmd" in
         # Only git outlives a session: a run started too late to finish before the machine goes is lost. Let
         # the first HOLD_AFTER runs this sweep starts go on and pause (SIGSTOP) any later one; it dies with the
         # session and starts afresh in the next (kill -CONT PID lets it go on after all).
-        (while pgrep -f "sweep .*--exp $WORK/main( |$)" > /dev/null; do
+        # (trap '' HUP, as nohup does for the sweep: the loop must outlive the shell that started it)
+        (trap '' HUP; while pgrep -f "sweep .*--exp $WORK/main( |$)" > /dev/null; do
            grep -oE "(start [^ ]*|resume [^ ]* from step [0-9]*) \(pid [0-9]*\)" "$WORK/main.log" | tail -n +"$((HOLD_AFTER + 1))" | grep -o "[0-9]*)" |
              tr -d ')' | while read -r pid; do
                [ "$(ps -o stat= -p "$pid" 2>/dev/null | cut -c1)" = T ] || { kill -STOP "$pid" 2>/dev/null && echo "$(date +%T) paused pid $pid"; }
@@ -108,7 +109,7 @@ case "$cmd" in
       done
       if [ "${#seeds[@]}" -gt 0 ]; then
         log="$WORK/sb3-s$(IFS=-; echo "${seeds[*]}").log"
-        (for s in "${seeds[@]}"; do
+        (trap '' HUP; for s in "${seeds[@]}"; do
            d="$WORK/sb3-sac/runs/sb3-sac-s$s"
            if ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1; then args=(--resume)
            else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
