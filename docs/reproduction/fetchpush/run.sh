@@ -86,9 +86,10 @@ case "$cmd" in
          done) > "$WORK/hold.log" 2>&1 &
         echo "runs after the first $HOLD_AFTER will be paused (log $WORK/hold.log)"
       fi
+      # the machine and commit of this sweep's runs (not written when another start only adds SB3 runs)
+      mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
+        "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
     fi
-    mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
-      "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
     # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2) one after another, from its own commit
     # (sb3-sac/COMMIT: the runner gained checkpoints after COMMIT). A seed already running is left alone, so a
     # second `start` with other SB3_SEEDS runs them beside the first. Checkpoints (every 10,000 steps) live on
