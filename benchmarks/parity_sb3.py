@@ -282,6 +282,20 @@ def _runs_list(systems: dict[str, list[RunData]]) -> list[str]:
     return lines
 
 
+def _resolved(config: dict) -> dict:
+    """A run's config.json as mcrl reads it: keys added after the run was written get the value the run ran
+    with (today's default, or the legacy one `Config.from_run_json` supplies), so they are no difference."""
+    import dataclasses
+
+    from mcrl.config import Config
+    from mcrl.errors import MCRLError
+
+    try:
+        return dataclasses.asdict(Config.from_run_json(config))
+    except (MCRLError, TypeError, ValueError):
+        return config
+
+
 def _settings_note(systems: dict[str, list[RunData]]) -> list[str]:
     """Flag differing settings between the runs (other than seed, steps and output paths)."""
     ignore = {"seed", "total_steps", "out_dir", "final_eval_episodes", "checkpoint_every", "keep_checkpoints",
@@ -289,6 +303,7 @@ def _settings_note(systems: dict[str, list[RunData]]) -> list[str]:
     configs = [(f"{s} {r.label}", r.config) for s, runs in systems.items() for r in runs if r.config]
     if not configs:
         return ["No config.json found in the runs."]
+    configs = [(name, _resolved(c)) for name, c in configs]
     keys = sorted(set().union(*(c for _, c in configs)) - ignore)
     differ = [k for k in keys if len({json.dumps(c.get(k), sort_keys=True) for _, c in configs}) > 1]
     if not differ:

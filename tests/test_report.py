@@ -306,15 +306,17 @@ def test_groups_differ_by_every_setting(tmp_path: Path) -> None:
     }
 
 
-def test_reference_arms_and_provenance(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("layout", ["flat", "runs"])
+def test_reference_arms_and_provenance(tmp_path: Path, capsys: pytest.CaptureFixture[str], layout: str) -> None:
     exp = _experiment(tmp_path / "exp", {0.0: FINALS["alpha=0"], 0.2: FINALS["alpha=0.2"]})
     sb3 = {"system": "stable-baselines3", "version": "2.9.2"}
-    # Same config as mcrl's SAC runs: one peer run inside EXP/runs (not in sweep.json), two elsewhere.
+    # Same config as mcrl's SAC runs: one peer run inside EXP/runs (not in sweep.json), two elsewhere, either
+    # directly in --with's directory or in its runs/ (the layout of docs/reproduction/fetchpush/sb3-sac).
     _write_run(exp / "runs" / "sb3-s0", 0.0, 0, (0.5, -25.0), peer=sb3, done=False,
                final_eval={"step": TOTAL, "success_rate": 0.55, "mean_return": -24.0, "episodes": 100})
     peers = tmp_path / "peers"
     for seed in (1, 2):
-        _write_run(peers / f"sb3-s{seed}", 0.0, seed, (0.5, -25.0), peer=sb3)
+        _write_run(peers / ("runs" if layout == "runs" else "") / f"sb3-s{seed}", 0.0, seed, (0.5, -25.0), peer=sb3)
     (exp / "provenance.json").write_text(json.dumps(
         {"commit": "0123abc", "machine": "1x H100", "command": "mcrl sweep --file push.yaml --exp EXP",
          "rerun_one_seed": "mcrl train --preset fetchpush-sac --seed 3"}))

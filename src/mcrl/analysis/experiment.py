@@ -199,7 +199,8 @@ def _sweep_runs(d: Path, prefix: str = "") -> tuple[dict[str, Any], list[Run]]:
 
 
 def _extra_runs(path: Path) -> list[Run]:
-    """The runs of an extra path: an experiment directory, a run directory, or a directory of run directories."""
+    """The runs of an extra path: an experiment directory, a run directory, a directory of run directories, or
+    one whose ``runs/`` holds them (a reference arm laid out like an experiment, without sweep.json)."""
     if not path.is_dir():
         raise MCRLError(f"--with {path}: no such directory: give an experiment directory, a run directory "
                         "or a directory of run directories")
@@ -208,9 +209,11 @@ def _extra_runs(path: Path) -> list[Run]:
     if _is_run_dir(path):
         return [_read_run(path, path.name, None, None, {}, path.parent)]
     subdirs = [d for d in sorted(path.iterdir()) if _is_run_dir(d)]
+    if not subdirs and (path / RUNS).is_dir():  # an experiment's layout without sweep.json (a reference arm)
+        subdirs = [d for d in sorted((path / RUNS).iterdir()) if _is_run_dir(d)]
     if not subdirs:
         raise MCRLError(f"--with {path} holds no run (no sweep.json, and no config.json, eval.csv or peer.json in "
-                        "it or its subdirectories): give an experiment or run directory")
+                        f"it, its subdirectories or its {RUNS}/): give an experiment or run directory")
     return [_read_run(d, f"{path.name}/{d.name}", None, None, {}, path) for d in subdirs]
 
 
