@@ -367,6 +367,26 @@ def write_plot(systems: dict[str, list[RunData]], path: Path) -> None:
     plt.close(fig)
 
 
+def _peaks(systems: dict[str, list[RunData]], after: int) -> list[str]:
+    """Per run: the largest mean Q, entropy coefficient and critic loss logged after step ``after`` (past the
+    entropy-inflated start, where every critic rises and falls), each with its step, and the last values."""
+    head = ["system", "seed", "last step", f"peak mean Q after {after:,} (step)", "peak entropy coef. (step)",
+            "peak critic loss (step)", "last mean Q / entropy coef. / critic loss"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for sysname, runs in systems.items():
+        for r in runs:
+            cells = [_system_name(sysname, runs), r.label, f"{r.last_step:,}"]
+            for col in ("q_mean", "ent_coef", "critic_loss"):
+                pts = [(v, s) for s, v in zip(*r.series(col)) if s > after]
+                v, s = max(pts) if pts else (None, None)
+                cells.append(f"{_fmt(v, col)} ({s:,})" if v is not None else "—")
+            steps, _ = r.series("q_mean")
+            cells.append(" / ".join(_fmt(r.value(c, steps[-1]), c) for c in ("q_mean", "ent_coef", "critic_loss"))
+                         if steps else "—")
+            lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def cmd_compare(args: argparse.Namespace) -> int:
     _ensure_mcrl_on_path()
     if args.every < 1:
@@ -391,6 +411,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
              "one (n= says how many when not all).", "",
              *_settings_note(systems), "", "![parity](parity.png)", "", "## Runs", "", *_runs_list(systems), "",
              "## Summary (means over seeds)", "", *_summary(systems), "",
+             "## Peaks per run", "", "Whether a critic settles or drifts upward, run by run (a mean that averages "
+             "a diverged seed with settled ones hides both).", "", *_peaks(systems, args.settle_after), "",
              f"## Every {args.every:,} steps", "", *_tables(systems, args.every)]
     (out / "parity.md").write_text("\n".join(lines).rstrip() + "\n")
     print(f"wrote {out / 'parity.md'} and {out / 'parity.png'}")
@@ -423,6 +445,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--sb3", nargs="+", metavar="RUN_DIR", help="run directories of `parity_sb3.py sb3`")
     c.add_argument("--out", type=Path, required=True, help="output directory (parity.md, parity.png)")
     c.add_argument("--every", type=int, default=5000, help="table rows every N steps (default 5000)")
+    c.add_argument("--settle-after", type=int, default=20_000,
+                   help="peaks are taken after this step (default 20000: past the entropy-inflated start)")
     c.set_defaults(func=cmd_compare)
 
     k = sub.add_parser("check", help="self-test: the diagnostic-recording SAC equals stock SB3 SAC bit for bit")
