@@ -340,6 +340,13 @@ def write_plot(systems: dict[str, list[RunData]], path: Path) -> None:
                 xs = sorted(per_step)
                 ax.plot(np.array(xs) / 1e3, [np.mean(per_step[x]) for x in xs], color=colour, lw=2.4,
                         label=f"{_system_name(sysname, runs)} (mean of {len(runs)})")
+        if col == "q_mean" and max((abs(y) for ln in ax.get_lines() for y in ln.get_ydata()), default=0) > 100:
+            # a diverged critic (thousands) would flatten the settled ones (about -20..+20) into one line
+            ax.set_yscale("symlog", linthresh=20)
+            lo, hi = ax.get_ylim()
+            ax.set_yticks([t for t in (-1000, -100, -20, -10, 0, 10, 20, 100, 1000, 10000) if lo <= t <= hi])
+            ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda y, _: f"{y:g}"))
+            title += " (linear within ±20, log beyond)"
         ax.set_title(title)
         if log:
             ax.set_yscale("log")
