@@ -71,13 +71,16 @@ case "$cmd" in
     else
       nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
         --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
+      sweep_pid=$!
       echo "started main sweep (log $WORK/main.log)"
       if [ -n "${HOLD_AFTER:-}" ]; then
         # Only git outlives a session: a run started too late to finish before the machine goes is lost. Let
         # the first HOLD_AFTER runs this sweep starts go on and pause (SIGSTOP) any later one; it dies with the
         # session and starts afresh in the next (kill -CONT PID lets it go on after all).
         # (trap '' HUP, as nohup does for the sweep: the loop must outlive the shell that started it)
-        (trap '' HUP; while pgrep -f "sweep .*--exp $WORK/main( |$)" > /dev/null; do
+        # (the loop follows the sweep's pid: a pgrep on its command line, run before the forked shell had exec'd
+        # the sweep, found nothing and ended the loop at once)
+        (trap '' HUP; while kill -0 "$sweep_pid" 2> /dev/null; do
            grep -oE "(start [^ ]*|resume [^ ]* from step [0-9]*) \(pid [0-9]*\)" "$WORK/main.log" | tail -n +"$((HOLD_AFTER + 1))" | grep -o "[0-9]*)" |
              tr -d ')' | while read -r pid; do
                [ "$(ps -o stat= -p "$pid" 2>/dev/null | cut -c1)" = T ] || { kill -STOP "$pid" 2>/dev/null && echo "$(date +%T) paused pid $pid"; }
