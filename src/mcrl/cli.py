@@ -165,7 +165,7 @@ def _report(sub) -> None:
     p.add_argument("--out", help="output directory (default EXPERIMENT_DIR/report)")
     p.add_argument("--with", dest="with_dirs", action="append", metavar="DIR", default=[],
                    help="more runs to include (repeatable): another experiment directory, a run directory, or a "
-                   "directory of run directories, e.g. reference arms with a peer.json")
+                   "directory of run directories (directly or in its runs/), e.g. reference arms with a peer.json")
 
     def run(args) -> int:
         require_all(REPORT_MODULES, None, "mcrl report")
