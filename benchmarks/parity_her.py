@@ -55,23 +55,24 @@ def _episodes(env, n: int, seed: int) -> list[list[tuple]]:
     return eps
 
 
-def _stats(obs_b, goal_b, reward_b, relab_b, index, episodes, key_len: int) -> dict:
-    """Per-system statistics of a list of sampled batches (numpy arrays of flat observations)."""
-    T = max(len(ep) for ep in episodes)
+def _stats(obs_b, reward_b, relab_b, index, next_achieved, key_len: int, dg_slice: slice) -> dict:
+    """Per-system statistics of a list of sampled batches (numpy arrays of flat observations);
+    ``next_achieved[e]`` is episode e's next achieved goals, (T, goal dim)."""
+    T = max(len(a) for a in next_achieved)
     pos_hist, off_hist, off_n = np.zeros(T), np.zeros(T), 0
-    for obs, goal, relab in zip(obs_b, goal_b, relab_b):
-        for o, g, is_her in zip(obs, goal, relab):
+    for obs, relab in zip(obs_b, relab_b):
+        for o, is_her in zip(obs, relab):
             e, t = index[o[:key_len].tobytes()]
             pos_hist[t] += 1
             if is_her:
-                ach = np.array([st[3]["achieved_goal"] for st in episodes[e]], np.float32)  # next achieved goals
-                hits = np.flatnonzero(np.all(ach == g, axis=1))
+                hits = np.flatnonzero(np.all(next_achieved[e] == o[dg_slice], axis=1))
                 if len(hits) == 1:
                     off_hist[hits[0] - t] += 1
                     off_n += 1
     r = np.array([b.mean() for b in reward_b])
     rel = np.concatenate(relab_b)
     rw = np.concatenate(reward_b)
+
     def se(x: np.ndarray) -> float:
         return float(x.std(ddof=1) / np.sqrt(len(x)))
 
@@ -109,10 +110,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     episodes = _episodes(env, args.episodes, args.seed)
     od, gd = spec.observation_dim, spec.goal_dim
+    flat = [[flatten_obs(st[0]) for st in ep] for ep in episodes]
+    next_achieved = [np.array([st[3]["achieved_goal"] for st in ep], np.float32) for ep in episodes]
     index = {}  # flat (observation | achieved_goal) bytes -> (episode, step): identifies a sampled transition
-    for e, ep in enumerate(episodes):
-        for t, st in enumerate(ep):
-            index[flatten_obs(st[0])[: od + gd].tobytes()] = (e, t)
+    for e, ep in enumerate(flat):
+        for t, x in enumerate(ep):
+            index[x[: od + gd].tobytes()] = (e, t)
     n = sum(len(ep) for ep in episodes)
     if len(index) != n:
         print(f"{n - len(index)} transitions share an observation: cannot identify samples", file=sys.stderr)
@@ -135,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     np.random.seed(args.seed)  # stable-baselines3 draws from numpy's global generator
     res = {}
     for name in ("mcrl", "stable-baselines3"):
-        obs_b, goal_b, reward_b, relab_b = [], [], [], []
+        obs_b, reward_b, relab_b = [], [], []
         for _ in range(args.batches):
             if name == "mcrl":
                 b = ours.sample(cfg.batch_size, rng)
@@ -146,16 +149,14 @@ def main(argv: list[str] | None = None) -> int:
                 obs = np.concatenate([o["observation"], o["achieved_goal"], o["desired_goal"]], axis=1)
                 obs = obs.astype(np.float32)  # SB3 keeps the space's float64
                 rew = s.rewards.numpy().reshape(-1)
-                stored = np.array([flatten_obs(episodes[e][t][0])[dg_slice] for e, t in
-                                   (index[x[: od + gd].tobytes()] for x in obs)])
+                stored = np.array([flat[e][t][dg_slice] for e, t in (index[x[: od + gd].tobytes()] for x in obs)])
                 # SB3 puts the original transitions first, the relabelled (virtual) ones last
                 relab = np.arange(len(obs)) >= len(obs) - int(theirs.her_ratio * cfg.batch_size)
                 assert np.all(stored[~relab] == obs[~relab, dg_slice])
             obs_b.append(obs)
-            goal_b.append(obs[:, dg_slice])
             reward_b.append(np.asarray(rew, np.float64))
             relab_b.append(np.asarray(relab, bool))
-        res[name] = _stats(obs_b, goal_b, reward_b, relab_b, index, episodes, od + gd)
+        res[name] = _stats(obs_b, reward_b, relab_b, index, next_achieved, od + gd, dg_slice)
 
     a, b = res["mcrl"], res["stable-baselines3"]
 
