@@ -208,9 +208,11 @@ def _extra_runs(path: Path) -> list[Run]:
         return _sweep_runs(path, prefix=f"{path.name}/")[1]
     if _is_run_dir(path):
         return [_read_run(path, path.name, None, None, {}, path.parent)]
-    subdirs = [d for d in sorted(path.iterdir()) if _is_run_dir(d)]
-    if not subdirs and (path / RUNS).is_dir():  # an experiment's layout without sweep.json (a reference arm)
-        subdirs = [d for d in sorted((path / RUNS).iterdir()) if _is_run_dir(d)]
+    def run_dirs(d: Path) -> list[Path]:
+        return [x for x in sorted(d.iterdir()) if _is_run_dir(x)] if d.is_dir() else []
+
+    # its run directories, or those of its runs/ (an experiment's layout without sweep.json, e.g. a reference arm)
+    subdirs = run_dirs(path) or run_dirs(path / RUNS)
     if not subdirs:
         raise MCRLError(f"--with {path} holds no run (no sweep.json, and no config.json, eval.csv or peer.json in "
                         f"it, its subdirectories or its {RUNS}/): give an experiment or run directory")
