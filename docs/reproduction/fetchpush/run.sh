@@ -3,7 +3,6 @@
 #
 #   bash docs/reproduction/fetchpush/run.sh start   # clone + install (once), then start what is unfinished
 #     WORKERS=N  runs at once in the main sweep (2);  MAIN=0  leave the main sweep alone
-#     HOLD_AFTER=N  pause every run the main sweep starts after its first N (they could not finish in time)
 #     WITH_SB3=1 the stable-baselines3 reference too (SB3_SEEDS, default "0 1 2", one after another; SB3_THREADS,
 #     default 2);  WITH_VARIANT=1 the third arm
 #   bash docs/reproduction/fetchpush/run.sh sync    # copy finished runs' small files here (then git commit them)
@@ -71,24 +70,7 @@ case "$cmd" in
     else
       nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
         --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
-      sweep_pid=$!
       echo "started main sweep (log $WORK/main.log)"
-      if [ -n "${HOLD_AFTER:-}" ]; then
-        # Only git outlives a session: a run started too late to finish before the machine goes is lost. Let
-        # the first HOLD_AFTER runs this sweep starts go on and pause (SIGSTOP) any later one; it dies with the
-        # session and starts afresh in the next (kill -CONT PID lets it go on after all).
-        # (trap '' HUP, as nohup does for the sweep: the loop must outlive the shell that started it)
-        # (the loop follows the sweep's pid: a pgrep on its command line, run before the forked shell had exec'd
-        # the sweep, found nothing and ended the loop at once)
-        (trap '' HUP; while kill -0 "$sweep_pid" 2> /dev/null; do
-           grep -oE "(start [^ ]*|resume [^ ]* from step [0-9]*) \(pid [0-9]*\)" "$WORK/main.log" | tail -n +"$((HOLD_AFTER + 1))" | grep -o "[0-9]*)" |
-             tr -d ')' | while read -r pid; do
-               [ "$(ps -o stat= -p "$pid" 2>/dev/null | cut -c1)" = T ] || { kill -STOP "$pid" 2>/dev/null && echo "$(date +%T) paused pid $pid"; }
-             done
-           sleep 5
-         done) > "$WORK/hold.log" 2>&1 &
-        echo "runs after the first $HOLD_AFTER will be paused (log $WORK/hold.log)"
-      fi
       # the machine and commit of this sweep's runs (not written when another start only adds SB3 runs)
       mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
         "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
