@@ -358,20 +358,6 @@ def save_checkpoint(run_dir: Path, model, step: int, state: dict, keep: int) -> 
     return final
 
 
-def _write_json_atomic(path: Path, obj: dict) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj))
-    tmp.replace(path)
-
-
-def _append_csv(path: Path, columns, row: dict) -> None:
-    import csv
-
-    with open(path, "a", newline="") as f:
-        csv.DictWriter(f, fieldnames=columns, extrasaction="ignore").writerow(
-            {k: ("" if row.get(k) is None else row[k]) for k in columns})
-
-
 def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bool, resume: dict | None = None,
                    checkpoints: bool = True):
     """A BaseCallback that writes mcrl's metrics.csv / eval.csv rows at mcrl's points of the loop, and
@@ -386,7 +372,7 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
     """
     import numpy as np
     from mcrl.envs import success_of
-    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS
+    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS, append_row, write_json_atomic
     from stable_baselines3.common.callbacks import BaseCallback
 
     total = cfg.total_steps
@@ -442,7 +428,7 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
             res = evaluator.run(self.model, self.eval_round, episodes)
             self.eval_round += 1
             self.last_eval = res
-            _append_csv(run_dir / "eval.csv", EVAL_COLUMNS, {"step": step, **res})
+            append_row(run_dir / "eval.csv", EVAL_COLUMNS, {"step": step, **res})
 
         def _after_step(self, step: int) -> None:
             if cfg.eval_every and step % cfg.eval_every == 0 and step < total:
@@ -450,7 +436,7 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
             if step % cfg.log_every == 0 or step == total:
                 if step == total:
                     self._evaluate(step, n_final)
-                    _write_json_atomic(run_dir / "final_eval.json", {"step": step, **self.last_eval})
+                    write_json_atomic(run_dir / "final_eval.json", {"step": step, **self.last_eval})
                 elapsed = time.perf_counter() - self.t_start
                 sps = step / elapsed if elapsed > 0 else None
                 iv = self.interval
@@ -460,7 +446,7 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
                        "eval_success_rate": self.last_eval["success_rate"],
                        "eval_mean_return": self.last_eval["mean_return"],
                        **model.read_diagnostics()}
-                _append_csv(run_dir / "metrics.csv", METRIC_COLUMNS, row)
+                append_row(run_dir / "metrics.csv", METRIC_COLUMNS, row)
                 self.interval = {"returns": [], "successes": []}
                 if self.bar is not None:
                     post = {"sps": f"{sps:.0f}" if sps else "-"}
@@ -549,7 +535,7 @@ def train(cfg, run_dir: Path, threads: int = 1, progress: bool = True, overwrite
     torch.set_num_threads(threads)
     import stable_baselines3
 
-    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS, truncate_rows
+    from mcrl.run.rundir import EVAL_COLUMNS, METRIC_COLUMNS, start_csv, truncate_rows, write_json_atomic
 
     evaluator = Evaluator(cfg)
     try:
@@ -569,11 +555,8 @@ def train(cfg, run_dir: Path, threads: int = 1, progress: bool = True, overwrite
             (run_dir / "peer.json").write_text(json.dumps({
                 "system": "stable-baselines3", "version": stable_baselines3.__version__,
                 "torch": torch.__version__, "torch_threads": torch.get_num_threads()}, indent=2) + "\n")
-            import csv
-
             for name, cols in (("metrics.csv", METRIC_COLUMNS), ("eval.csv", EVAL_COLUMNS)):
-                with open(run_dir / name, "w", newline="") as f:
-                    csv.DictWriter(f, fieldnames=cols).writeheader()
+                start_csv(run_dir / name, cols)
     except BaseException:
         evaluator.close()
         raise
@@ -584,7 +567,7 @@ def train(cfg, run_dir: Path, threads: int = 1, progress: bool = True, overwrite
         model.learn(total_timesteps=cfg.total_steps - model.num_timesteps, callback=recorder,
                     reset_num_timesteps=not resume)
         model.save(run_dir / "sb3_model.zip")  # the policy and optimisers (not the replay buffer)
-        _write_json_atomic(run_dir / "done", {"step": int(model.num_timesteps), **recorder.last_eval})
+        write_json_atomic(run_dir / "done", {"step": int(model.num_timesteps), **recorder.last_eval})
         shutil.rmtree(run_dir / CHECKPOINTS, ignore_errors=True)  # finished: the replay buffers are dead weight
     finally:
         recorder.close()
