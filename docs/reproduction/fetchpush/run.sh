@@ -4,7 +4,7 @@
 #   bash docs/reproduction/fetchpush/run.sh start   # clone + install (once), then start what is unfinished
 #     WORKERS=N  runs at once in the main sweep (2);  MAIN=0  leave the main sweep alone
 #     WITH_SB3=1 the stable-baselines3 reference too (SB3_SEEDS, default "0 1 2", one after another; SB3_THREADS,
-#     default 2);  WITH_VARIANT=1 the third arm
+#     default 2);  WITH_VARIANT=1 the third arm (VARIANT_WORKERS runs at once, 2)
 #   bash docs/reproduction/fetchpush/run.sh sync    # copy finished runs' small files here (then git commit them)
 #   bash docs/reproduction/fetchpush/run.sh status
 #
@@ -109,7 +109,7 @@ case "$cmd" in
       echo "code-variant sweep already running"
     elif [ "${WITH_VARIANT:-0}" = 1 ]; then  # the thesis' code's MC reward: after the first two arms
       nohup "$M" sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 \
-        --workers 1 --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
+        --workers "${VARIANT_WORKERS:-2}" --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
       echo "started the code-variant sweep (log $WORK/code-variant.log)"
       mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --exp EXP" \
         "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
