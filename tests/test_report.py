@@ -119,6 +119,11 @@ def test_markdown_report_values(experiment: Path, tmp_path: Path) -> None:
     assert "SAC-MC alpha=0.2 (`alpha=0.2`) mean return: the thesis' -23.0 lies below our 95% CI" in thesis
     assert ("**Reproduced**: the thesis' claim that SAC-MC alpha=0.2 reaches a higher final success rate than SAC "
             "(thesis: +0.23), X = `alpha=0.2`, Y = `alpha=0`: P(X > Y) = 0.944 [") in thesis
+    # the issue's second claim has no arm here: it is named, with no verdict
+    assert ("**Not decidable with this many seeds**: the thesis' claim that the thesis' code's variant of SAC-MC "
+            "alpha=0.2 (one batch-mean KL, the whole observation) reaches a higher final success rate than SAC "
+            "(thesis: +0.23): this report has no finished run of the thesis' code's variant") in thesis
+    assert "0 seeds (add its experiment with `--with DIR`)." in thesis
 
     mcs = _section(md, "MC reward and raw KL during training")
     assert _row(mcs, "`alpha=0.2`")[2:] == ["-0.2500", "1.1000"]  # last logged values at step 1000
@@ -321,6 +326,9 @@ def test_reference_arms_and_provenance(tmp_path: Path, capsys: pytest.CaptureFix
         {"commit": "0123abc", "machine": "1x H100", "command": "mcrl sweep --file push.yaml --exp EXP",
          "rerun_one_seed": "mcrl train --preset fetchpush-sac --seed 3"}))
 
+    (peers / "provenance.json").write_text(json.dumps(
+        {"commit": "4567def", "machine": "A (runs sb3-s1); B (runs sb3-s2)", "machines": {"sb3-s1": "A", "sb3-s2": "B"}}))
+
     loaded = load_experiment(exp, extra_runs=[peers])
     assert [(g.key, g.peer, len(g.finished)) for g in loaded.configs] == [
         ("alpha=0", None, 3), ("alpha=0.2", None, 3), ("stable-baselines3 SAC", "stable-baselines3 2.9.2", 3)]
@@ -330,8 +338,11 @@ def test_reference_arms_and_provenance(tmp_path: Path, capsys: pytest.CaptureFix
     md = (tmp_path / "rep" / "report.md").read_text()
     assert md.index("**Provenance**") < md.index("## Learning curves")
     for text in ("code commit: `0123abc`", "machine: `1x H100`", "command: `mcrl sweep --file push.yaml --exp EXP`",
-                 "re-run one seed: `mcrl train --preset fetchpush-sac --seed 3`"):
+                 "re-run one seed: `mcrl train --preset fetchpush-sac --seed 3`",
+                 f"**Provenance of `peers`** (from `{peers / 'provenance.json'}`):", "code commit: `4567def`",
+                 "machine: `A (runs sb3-s1); B (runs sb3-s2)`"):
         assert text in md
+    assert "machines" not in md.split("## Learning curves")[0]  # the per-run map is what "machine" summarises
     assert "Dashed: reference arms" in md
     final = _row(_section(md, "Final performance per configuration"), "`stable-baselines3 SAC` (reference)")
     assert final[2] == "3 / 3" and final[4].startswith("0.517 [")  # (0.55 + 0.5 + 0.5) / 3
@@ -361,3 +372,6 @@ def test_thesis_claims_get_one_of_three_verdicts_and_the_code_variant_is_named(t
     assert ("**Not reproduced**: the thesis' claim that the thesis' code's variant of SAC-MC alpha=0.2 (one "
             "batch-mean KL, the whole observation) reaches a higher final success rate than SAC") in thesis
     assert "the claimed difference +0.230 lies above the 95% CI of our mean difference -0.025 [" in thesis
+    # the plain algorithm is not in this experiment: not decidable, not silently missing
+    assert ("**Not decidable with this many seeds**: the thesis' claim that SAC-MC alpha=0.2 reaches a higher final "
+            "success rate than SAC (thesis: +0.23): this report has no finished run of SAC-MC alpha=0.2, 0 seeds.") in thesis

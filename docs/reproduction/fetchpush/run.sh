@@ -20,9 +20,11 @@ CODE="$WORK/mcrl-$COMMIT"
 ARMS="main code-variant sb3-sac"        # experiment dirs: SAC + SAC-MC 0.2; the thesis code's variant; SB3
 
 cmd="${1:-status}"
-sync() {
+# this machine, as recorded in provenance.json for the runs it finishes
+machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
+sync() {  # the working tree's sync_runs.py (stdlib only), which records the machine of each newly finished run
   for arm in $ARMS; do
-    [ -d "$WORK/$arm" ] && "$CODE/.venv/bin/python" "$CODE/benchmarks/sync_runs.py" "$WORK/$arm" "$HERE/$arm"
+    [ -d "$WORK/$arm" ] && "$CODE/.venv/bin/python" "$REPO/benchmarks/sync_runs.py" "$WORK/$arm" "$HERE/$arm" --machine "$machine"
   done
   return 0
 }
@@ -54,7 +56,6 @@ case "$cmd" in
         mkdir -p "$WORK/$arm" && cp "$HERE/$arm/sweep.json" "$WORK/$arm/"
       fi
     done
-    machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
     mk_prov() {  # $1 arm, $2 command, $3 one-seed command; after the sweep made its directory (it wants it empty)
       for _ in $(seq 120); do [ -f "$WORK/$1/sweep.json" ] && break; sleep 1; done
       printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \

@@ -10,7 +10,8 @@ Reads ``EXP/sweep.json`` and ``EXP/runs/<name>/`` (docs/run-directory.md). Besid
   reference arms, grouped by system and never with mcrl runs. Besides the runs sweep.json lists, directories
   under ``EXP/runs/`` with a ``peer.json`` are read, and runs from other places can be added (``extra_runs``,
   ``mcrl report --with DIR``). A peer run without ``done`` counts as finished once it has ``final_eval.json``.
-- ``EXP/provenance.json`` ``{"commit", "machine", "command", "rerun_one_seed"}``.
+- ``EXP/provenance.json`` ``{"commit", "machine", "command", "rerun_one_seed"}`` (more keys are shown as they
+  are; ``"machines"``, run name -> machine, is summarised by ``"machine"``), and that of each extra directory.
 
 Runs are grouped into configurations by every config key that differs between them, except the keys that
 only name, place or save a run (:data:`NOT_CONFIGURATION`).
@@ -158,6 +159,7 @@ class Experiment:
     configs: list[ConfigGroup]
     provenance: dict[str, Any] = field(default_factory=dict)  # EXP/provenance.json
     extra_sources: list[Path] = field(default_factory=list)  # the extra_runs paths read
+    extra_provenance: dict[Path, dict[str, Any]] = field(default_factory=dict)  # of those that have one
 
 
 def _read_json(path: Path) -> dict[str, Any]:
@@ -243,7 +245,8 @@ def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path]
         raise MCRLError(f"no run in {d} has written an evaluation yet ({started} of {len(runs)} runs started): "
                         "wait for the first evaluation (eval.csv), then run `mcrl report` again")
     preset = str(sweep.get("preset") or next((r.config["preset"] for r in runs if r.config.get("preset")), ""))
-    return Experiment(d, preset, runs, group_runs(runs), _read_json(d / PROVENANCE), extra)
+    extra_prov = {p: prov for p in extra if p.resolve() != d.resolve() and (prov := _read_json(p / PROVENANCE))}
+    return Experiment(d, preset, runs, group_runs(runs), _read_json(d / PROVENANCE), extra, extra_prov)
 
 
 # ------------------------------------------------------------------------------------ grouping
