@@ -367,7 +367,11 @@ def test_thesis_claims_get_one_of_three_verdicts_and_the_code_variant_is_named(t
     sac = [(s, -30.0) for s in (0.5, 0.55, 0.6, 0.5, 0.55, 0.6)]
     mc = [(s, -30.0) for s in (0.5, 0.55, 0.6, 0.45, 0.5, 0.55)]
     code = {"mc_reduction": "batch", "mc_state": "full"}
-    md = write_report(_experiment(tmp_path / "exp", {0.0: sac, 0.2: mc}, config=code), tmp_path / "rep").read_text()
+    exp = _experiment(tmp_path / "exp", {0.0: sac, 0.2: mc}, config=code)
+    sweep = json.loads((exp / "sweep.json").read_text())  # a seed not started yet (no config.json) changes nothing
+    sweep["runs"].append({"name": "a0.2-s6", "config_key": "alpha=0.2", "seed": 6, "overrides": {"mc_alpha": 0.2}})
+    (exp / "sweep.json").write_text(json.dumps(sweep))
+    md = write_report(exp, tmp_path / "rep").read_text()
     thesis = _section(md, "Comparison with the thesis (FetchPush)")
     assert ("**Not reproduced**: the thesis' claim that the thesis' code's variant of SAC-MC alpha=0.2 (one "
             "batch-mean KL, the whole observation) reaches a higher final success rate than SAC") in thesis

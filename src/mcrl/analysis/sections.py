@@ -100,8 +100,9 @@ def _sac_and_mc(exp: Experiment) -> tuple[list[ConfigGroup], list[ConfigGroup]]:
 
 def _is_code_variant(g: ConfigGroup) -> bool:
     """Runs with the thesis' code's MC reward: one batch-mean KL for all transitions, the whole observation."""
-    return bool(g.runs) and all(r.config.get("mc_reduction") == "batch" and r.config.get("mc_state") == "full"
-                                for r in g.runs)
+    started = [r for r in g.runs if r.config]  # a run not started yet has no config.json to tell
+    return bool(started) and all(r.config.get("mc_reduction") == "batch" and r.config.get("mc_state") == "full"
+                                 for r in started)
 
 
 def _comparisons(exp: Experiment) -> list[tuple[ConfigGroup, ConfigGroup]]:
