@@ -376,6 +376,8 @@ def test_thesis_claims_get_one_of_three_verdicts_and_the_code_variant_is_named(t
     assert ("**Not reproduced**: the thesis' claim that the thesis' code's variant of SAC-MC alpha=0.2 (one "
             "batch-mean KL, the whole observation) reaches a higher final success rate than SAC") in thesis
     assert "the claimed difference +0.230 lies above the 95% CI of our mean difference -0.025 [" in thesis
+    assert "| SAC-MC alpha=0.2, the thesis' code's variant (`alpha=0.2`) | 0.75 |" in thesis
+    assert "| SAC (`alpha=0`) | 0.52 |" in thesis  # the MC reward's settings do not matter without it
     # the plain algorithm is not in this experiment: not decidable, not silently missing
     assert ("**Not decidable with this many seeds**: the thesis' claim that SAC-MC alpha=0.2 reaches a higher final "
             "success rate than SAC (thesis: +0.23): this report has no finished run of SAC-MC alpha=0.2, 0 seeds.") in thesis

@@ -351,6 +351,7 @@ def _thesis_comparison(exp: Experiment) -> list[Block]:
             ms, cs = _mean_ci(s)
             mm, cm = _mean_ci(m)
             row_label = f"{label}, reference" if g.peer else label
+            row_label += ", the thesis' code's variant" if alpha > 0 and _is_code_variant(g) else ""
             rows.append([f"{row_label} (`{g.key}`)", f"{th['success_mean']:.2f}", f"{_f(ms, 3)} {_ci(cs, 3)}",
                          f"{th['success_var']:.2f}", _f(_var(s), 4), f"{th['mean_reward']:.1f}",
                          f"{_f(mm, 2)} {_ci(cm, 2)}"])
