@@ -2,9 +2,10 @@
 # Start or resume the FetchPush reproduction (issue 9) from a clone of one fixed commit, in the background.
 #
 #   bash docs/reproduction/fetchpush/run.sh start   # clone + install (once), then start what is unfinished
-#     WORKERS=N  runs at once in the main sweep (2);  MAIN=0  leave the main sweep alone
-#     WITH_SB3=1 the stable-baselines3 reference too (SB3_SEEDS, default "0 1 2", one after another; SB3_THREADS,
-#     default 2);  WITH_VARIANT=1 the third arm (VARIANT_WORKERS runs at once, 2)
+#     WORKERS=N  runs at once in the main sweep (2);  SEEDS=N  seeds 0..N-1 of each main arm (12: issue 26 added
+#     seeds 6-11 to issue 9's 0-5);  MAIN=0  leave the main sweep alone
+#     WITH_SB3=1 the stable-baselines3 reference too (SB3_SEEDS, default "0 1 2 3 4 5", one after another;
+#     SB3_THREADS, default 1, as every committed run);  WITH_VARIANT=1 the third arm (VARIANT_WORKERS runs at once, 2)
 #   bash docs/reproduction/fetchpush/run.sh sync    # copy finished runs' small files here (then git commit them)
 #   bash docs/reproduction/fetchpush/run.sh status
 #
@@ -63,20 +64,21 @@ case "$cmd" in
     }
     M="$CODE/.venv/bin/mcrl"
     mkdir -p "$WORK/sb3-sac/runs"
-    # SAC and SAC-MC 0.2, seed-major order (s0 of both arms first), 2 runs at a time, 1 thread each
+    # SAC and SAC-MC 0.2, seed-major order (s0 of both arms first), 2 runs at a time, 1 thread each; the sweep
+    # merges the new seeds into the committed sweep.json and skips the runs that are done
     if [ "${MAIN:-1}" = 0 ]; then
       echo "main sweep not started (MAIN=0)"
     elif pgrep -f "sweep .*--exp $WORK/main( |$)" > /dev/null; then
       echo "main sweep already running (log $WORK/main.log)"
     else
-      nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers "${WORKERS:-2}" --threads-per-run 1 \
+      nohup "$M" sweep --preset fetchpush-sac --alphas 0,0.2 --seeds "${SEEDS:-12}" --workers "${WORKERS:-2}" --threads-per-run 1 \
         --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
       echo "started main sweep (log $WORK/main.log)"
       # the machine and commit of this sweep's runs (not written when another start only adds SB3 runs)
-      mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds 6 --workers 2 --threads-per-run 1 --exp EXP" \
+      mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds ${SEEDS:-12} --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP" \
         "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
     fi
-    # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2) one after another, from its own commit
+    # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2 3 4 5) one after another, from its own commit
     # (sb3-sac/COMMIT: the runner gained checkpoints after COMMIT). A seed already running is left alone, so a
     # second `start` with other SB3_SEEDS runs them beside the first. Checkpoints (every 10,000 steps) live on
     # this machine only: a run unfinished when the machine goes restarts from scratch on the next one.
@@ -88,7 +90,7 @@ case "$cmd" in
         (cd "$SB3_CODE" && make install && .venv/bin/pip install -q -e ".[bench]" && touch .venv/.bench)
       fi
       seeds=()
-      for s in ${SB3_SEEDS:-0 1 2}; do
+      for s in ${SB3_SEEDS:-0 1 2 3 4 5}; do
         d="$WORK/sb3-sac/runs/sb3-sac-s$s"
         if [ -f "$d/done" ]; then continue; fi
         if pgrep -f "parity_sb3.py sb3 .*--run-dir $d( |$)" > /dev/null; then echo "stable-baselines3 seed $s already running"; continue; fi
@@ -101,7 +103,7 @@ case "$cmd" in
            if ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1; then args=(--resume)
            else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
            "$SB3_CODE/.venv/bin/python" "$SB3_CODE/benchmarks/parity_sb3.py" sb3 "${args[@]}" \
-             --threads "${SB3_THREADS:-2}" --run-dir "$d" --no-progress
+             --threads "${SB3_THREADS:-1}" --run-dir "$d" --no-progress
          done) > "$log" 2>&1 &
         echo "started stable-baselines3 seed(s) ${seeds[*]} (log $log)"
       fi
