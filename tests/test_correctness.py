@@ -157,46 +157,12 @@ def test_resaving_a_step_keeps_a_usable_checkpoint(tmp_path):
     assert not list((tmp_path / "checkpoints").glob(".old-*")) and not list((tmp_path / "checkpoints").glob(".tmp-*"))
 
 
-def test_run_dirs_written_before_init_existed_are_read_with_their_own_settings():
+def test_run_dirs_written_by_mcrl_0_1_are_refused_with_the_migration_named(tmp_path):
+    from mcrl.errors import MCRLError
+    from mcrl.run.rundir import read_config
+
     old = {**Config().to_dict(), "mc_history": 400_000, "batch_size": 256}
     del old["init"], old["final_eval_episodes"]
-    cfg = Config.from_run_json(old)
-    assert cfg.init == "flax" and cfg.mc_history == 1562  # the same window, now in gradient steps
-
-
-def test_checkpoints_from_mcrl_0_1_load_for_evaluation_and_refuse_resume(tmp_path, small):
-    # Rewrite a checkpoint into 0.1's layout: flat train-state keys, the normaliser inside state.npz.
-    from mcrl.errors import MCRLError
-    from mcrl.run.trainer import resume
-
-    cfg = resolve_config("fetchreach-sacmc", {**small, "total_steps": 200, "eval_every": 0, "log_every": 100,
-                                              "mc_history": 4})
-    run = train(cfg, tmp_path / "old", progress=False)
-    _, _, new_state = load_policy(run)
-    ck = checkpoint.find(run)
-    back = {new: old for old, new in checkpoint._RENAMED}
-    with np.load(ck / "state.npz") as f:
-        arrays = dict(f)
-    legacy = {}
-    for k, v in arrays.items():
-        for new, old in sorted(back.items(), key=lambda kv: -len(kv[0])):
-            if k.startswith(new + "[") or k.startswith(new + ".") or k == new:
-                k = old + k[len(new):]
-                break
-        legacy[k] = v
-    with np.load(ck / "normaliser.npz") as f:
-        values = np.repeat(np.float32(1.5), int(f["count"]))
-    legacy.update({".norm.ring": values, ".norm.ptr": np.int32(0), ".norm.count": np.int32(values.size)})
-    np.savez(ck / "state.npz", **legacy)
-    (ck / "normaliser.npz").unlink()
-    old_cfg = json.loads((run / "config.json").read_text())
-    old_cfg.pop("init")
-    old_cfg["mc_history"] = 4 * 64
-    (run / "config.json").write_text(json.dumps(old_cfg))
-    cfg_back, _, state = load_policy(run)
-    assert cfg_back.init == "flax" and cfg_back.mc_history == 4
-    for a, b in zip(jax.tree.leaves(state.pi), jax.tree.leaves(new_state.pi)):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    assert int(state.norm.count) == values.size
-    with pytest.raises(MCRLError, match="not resumed"):
-        resume(run, progress=False, total_steps=300)
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    with pytest.raises(MCRLError, match="scripts/migrate_checkpoint.py"):
+        read_config(tmp_path)

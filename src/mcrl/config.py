@@ -101,17 +101,11 @@ class Config:
 
     @classmethod
     def from_run_json(cls, d: dict[str, Any]) -> "Config":
-        """A run directory's config.json, including those written before `init` existed (mcrl 0.1).
-
-        Those runs used Flax's initialisation and counted `mc_history` in KL values (a window); they are
-        read with init=flax and the same window in gradient steps, so they can be evaluated and rendered.
-        """
-        d = dict(d)
+        """A run directory's config.json; keys added since it was written take their defaults. One without
+        `init` was written by mcrl 0.1 (Flax's initialisation, `mc_history` in KL values): refused, not guessed."""
         if "init" not in d:
-            d["init"] = "flax"
-            if d.get("mc_history") is not None:
-                per_step = 1 if d.get("mc_reduction") == "batch" else int(d.get("batch_size", 256))
-                d["mc_history"] = max(1, int(d["mc_history"]) // per_step)
+            raise MCRLError("this config.json was written by mcrl 0.1 (it has no `init`): convert its run directory "
+                            "with `python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
         return cls.from_dict(d)
 
 

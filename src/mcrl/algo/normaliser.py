@@ -78,12 +78,16 @@ def pack(state: NormaliserState) -> dict[str, np.ndarray]:
             "c3_index": nz, "c3_count": c3[nz]}
 
 
-def from_values(values, capacity: int | None) -> NormaliserState:
-    """A history holding `values` in its histogram (the ring, if any, starts empty); for old checkpoints."""
+def from_values(values, capacity: int | None = None) -> NormaliserState:
+    """A history that has seen `values` (oldest first): every one, or the newest `capacity` in its window."""
     values = np.maximum(np.asarray(values, np.float32).reshape(-1), 0.0)
+    ring = np.zeros(capacity or 0, np.float32)
+    if capacity:
+        values = values[-capacity:]
+        ring[: len(values)] = values
     keys = (values.view(np.uint32) >> 8).astype(np.int64)
     idx, cnt = np.unique(keys, return_counts=True)
-    return unpack({"ring": np.zeros(capacity or 0, np.float32), "ptr": 0, "count": len(values),
+    return unpack({"ring": ring, "ptr": len(values) % capacity if capacity else 0, "count": len(values),
                    "c3_index": idx, "c3_count": cnt}, capacity)
 
 

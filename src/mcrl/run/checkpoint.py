@@ -24,18 +24,7 @@ from mcrl.errors import MCRLError
 from mcrl.run import rundir
 
 _COMPLETE = ("state.npz", "meta.json")  # a checkpoint directory without these is not usable
-_LEGACY = ".norm."  # mcrl 0.1 kept the normaliser inside state.npz
-# mcrl 0.1's train-state keys -> today's (parameters and optimiser state now travel together); longest first
-_RENAMED = ((".critic_target", ".q_target"), (".critic_opt", ".q.opt"), (".critic", ".q.params"),
-            (".actor_opt", ".pi.opt"), (".actor", ".pi.params"), (".ent_opt", ".ent.opt"),
-            (".log_ent_coef", ".ent.params"), (".mc_opt", ".mc_models.opt"), (".mc", ".mc_models.params"))
-
-
-def _current_key(key: str) -> str:
-    for old, new in _RENAMED:
-        if key == old or key.startswith(old + "[") or key.startswith(old + "."):
-            return new + key[len(old):]
-    return key
+_OLD_FORMAT = (".actor", ".norm.")  # keys of checkpoints by mcrl 0.1 and commit 83e6d8d (flat layout)
 
 
 def _flatten(tree) -> dict[str, np.ndarray]:
@@ -139,10 +128,9 @@ def load_meta(ckpt: Path) -> dict[str, Any]:
 def restore_state(ckpt: Path, template):
     """Fill `template` (a freshly initialised state of the same config) with the checkpoint's arrays."""
     arrays = _load_npz(ckpt / "state.npz")
-    for key in [k for k in arrays if k.startswith(_LEGACY)]:
-        del arrays[key]  # mcrl 0.1's in-state normaliser: read through legacy_normaliser, not here
-    if ".actor" in {k.split("[")[0] for k in arrays}:  # an mcrl 0.1 checkpoint
-        arrays = {_current_key(k): v for k, v in arrays.items()}
+    if any(k.startswith(_OLD_FORMAT) for k in arrays):
+        raise MCRLError(f"checkpoint {ckpt} was written by an older mcrl (0.1 or commit 83e6d8d): convert it with "
+                        "`python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
     new_leaves = []
     for path, leaf in leaves:
@@ -165,14 +153,6 @@ def load_extra(ckpt: Path, name: str) -> dict[str, np.ndarray] | None:
     """The arrays `save` wrote as `extra[name]`, or None if the checkpoint has none."""
     path = ckpt / f"{name}.npz"
     return _load_npz(path) if path.is_file() else None
-
-
-def legacy_normaliser(ckpt: Path) -> dict[str, np.ndarray] | None:
-    """The values of an mcrl 0.1 checkpoint's in-state normaliser ring (`.norm.ring` up to `.norm.count`)."""
-    arrays = _load_npz(ckpt / "state.npz")
-    if _LEGACY + "ring" not in arrays:
-        return None
-    return {"values": arrays[_LEGACY + "ring"][: int(arrays[_LEGACY + "count"])]}
 
 
 def load_buffer_arrays(ckpt: Path) -> dict[str, np.ndarray] | None:

@@ -34,25 +34,21 @@ def agent_for(cfg: Config) -> tuple[Agent, EnvSpec]:
     return Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg), spec
 
 
-def restore(cfg: Config, agent: Agent, ckpt: Path, for_resume: bool = False) -> tuple[TrainState, dict]:
+def restore(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, dict]:
     """The train state and meta.json of checkpoint `ckpt` (its normaliser from normaliser.npz)."""
     meta = checkpoint.load_meta(ckpt)
     template = agent.init(cfg.seed)
     state = checkpoint.restore_state(ckpt, template._replace(norm=None))
     if template.norm is not None:
         packed = checkpoint.load_extra(ckpt, "normaliser")
-        if packed is not None:
-            try:
-                norm = normaliser.unpack(packed, cfg.mc_history_values)
-            except (KeyError, ValueError) as e:
-                raise MCRLError(f"checkpoint {ckpt}: its normaliser does not fit this config ({e}): resume with "
-                                "the run's own config.json") from None
-        else:
-            legacy = checkpoint.legacy_normaliser(ckpt)
-            if legacy is None or for_resume:
-                raise MCRLError(f"checkpoint {ckpt} has no normaliser history (written by mcrl 0.1 or damaged): "
-                                "it can be evaluated and rendered, not resumed; start a new run")
-            norm = normaliser.from_values(legacy["values"], cfg.mc_history_values)
+        if packed is None:
+            raise MCRLError(f"checkpoint {ckpt} has no normaliser.npz: it is damaged; delete it to fall back to an "
+                            "older one")
+        try:
+            norm = normaliser.unpack(packed, cfg.mc_history_values)
+        except (KeyError, ValueError) as e:
+            raise MCRLError(f"checkpoint {ckpt}: its normaliser does not fit this config ({e}): resume with "
+                            "the run's own config.json") from None
         state = state._replace(norm=norm)
     return state, meta
 

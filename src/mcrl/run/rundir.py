@@ -80,14 +80,18 @@ def write_json_atomic(path: str | Path, obj: dict[str, Any]) -> None:
 
 
 def read_config(run_dir: str | Path) -> Config:
-    """The run's typed config (also for run directories written before `init` existed, see Config.from_run_json)."""
+    """The run's typed config (see Config.from_run_json)."""
     path = Path(run_dir) / CONFIG
     if not path.is_file():
         raise MCRLError(f"{run_dir} is not a run directory (no {CONFIG}): give the directory `mcrl train` printed")
     try:
-        return Config.from_run_json(json.loads(path.read_text()))
+        d = json.loads(path.read_text())
     except ValueError as e:
         raise MCRLError(f"{path} is not valid JSON ({e}): the run directory is damaged") from None
+    try:
+        return Config.from_run_json(d)
+    except MCRLError as e:
+        raise MCRLError(f"{path}: {e}") from None
 
 
 def is_done(run_dir: str | Path) -> bool:

@@ -64,7 +64,7 @@ def save_run_state(run_dir: Path, cfg: Config, rs: RunState) -> None:
 
 
 def load_run_state(cfg: Config, agent: Agent, buffer: ReplayBuffer, ckpt: Path) -> RunState:
-    train_state, meta = restore(cfg, agent, ckpt, for_resume=True)
+    train_state, meta = restore(cfg, agent, ckpt)
     arrays = checkpoint.load_buffer_arrays(ckpt) if meta["has_buffer"] else None
     if arrays is None:
         raise MCRLError(f"checkpoint {ckpt} has no replay buffer (save_buffer=false): resuming would not "

@@ -32,8 +32,8 @@ def _write_mp4(frames, path: Path, fps: float) -> None:
         imageio_ffmpeg.get_ffmpeg_exe()
     except (ImportError, RuntimeError) as exc:
         raise MCRLError(
-            f"writing mp4 needs ffmpeg ({one_line(exc)}): pip install 'mcrl[video]' "
-            "(imageio-ffmpeg ships one) or apt-get install ffmpeg, or write a gif instead"
+            f"writing mp4 needs ffmpeg ({one_line(exc)}): pip install imageio-ffmpeg "
+            "(a dependency of mcrl; it ships one) or apt-get install ffmpeg, or write a gif instead"
         ) from exc
     writer = iio2.get_writer(
         str(path), format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
