@@ -7,7 +7,7 @@
 2. SB3 -> mcrl -> SB3: an SB3 model's state written as an mcrl checkpoint, read by mcrl's reader, installed into
    a fresh SB3 SAC: its torch parameters, optimiser states and replay-buffer arrays must equal the original's
    (observations after rounding to float32, what SB3's networks see).
-3. One gradient step, side by side, from the transplanted state (with its Adam moments) on the same replay
+3. Gradient steps, side by side, from each transplanted state (with its Adam moments) on the same replay
    batch and the same Gaussian noise (``parity_step``'s noise hand-over and tanh-correction patch): in mode
    ``sb3-exact`` (SB3 given mcrl's exact tanh correction) losses and parameter updates must agree to float32
    round-off (``parity_step``'s tolerances); ``as-is`` is reported.
@@ -197,11 +197,14 @@ def run_check(mcrl_learning: Learning, mcrl_cfg, sb3_model, sb3_cfg, sb3_episode
         install_sb3(copy, via_mcrl)
         res["sb3_mcrl_sb3"] = torch_differences(sb3_model, copy)
         del copy
-        # 3. one gradient step from the transplanted state, both systems
-        res["one_step"] = [one_step(mcrl_cfg, Path(tmp) / "a", mode, steps) for mode in ("as-is", "sb3-exact")]
+        # 3. gradient steps from each transplanted state, both systems (SB3's copy equals the original, part 2)
+        res["one_step"] = [{"origin": origin, **one_step(cfg, Path(tmp) / d, mode, steps)}
+                           for origin, cfg, d in (("mcrl", mcrl_cfg, "a"), ("sb3", sb3_cfg, "b"))
+                           for mode in ("as-is", "sb3-exact")]
     exact = {k: [n for n, v in res[k].items() if v != 0.0]
              for k in ("mcrl_sb3_mcrl", "mcrl_files_mcrl", "sb3_files_mcrl", "sb3_mcrl_sb3")}
     res["not_exact"] = {k: v for k, v in exact.items() if v}
-    res["step_failures"] = step_failures(res["one_step"][1])
+    res["step_failures"] = [f"{r['origin']} origin: {x}" for r in res["one_step"] if r["mode"] == "sb3-exact"
+                            for x in step_failures(r)]
     res["pass"] = not res["not_exact"] and not res["step_failures"]
     return res

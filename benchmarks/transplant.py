@@ -267,7 +267,7 @@ def cmd_check(args) -> int:
         print(f"{part}: {len(res[part])} arrays compared, max |difference| {worst:g}")
     for r in res["one_step"]:
         L = r["losses"]
-        print(f"{r['steps']} gradient steps, {r['mode']}: critic loss {L['critic_loss']['mcrl']:.6g} / "
+        print(f"{r['origin']} origin, {r['steps']} gradient steps, {r['mode']}: critic loss {L['critic_loss']['mcrl']:.6g} / "
               f"{L['critic_loss']['sb3']:.6g}, q_mean {L['q_mean']['mcrl']:.6g} / {L['q_mean']['sb3']:.6g}; "
               "max rel loss diff " + ", ".join(f"{k} {v['max_rel']:.1e}" for k, v in L.items())
               + "; update rel L2 " + ", ".join(f"{g} {v:.1e}" for g, v in r["update_rel_l2"].items())
