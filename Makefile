@@ -6,10 +6,11 @@ BIN    := $(VENV)/bin
 .PHONY: install system-packages demo test bench
 install: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+# The exact tested versions come from constraints.txt; pyproject.toml only states compatible ranges.
+$(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e ".[test]"
+	$(BIN)/pip install -q -c constraints.txt --upgrade pip
+	$(BIN)/pip install -q -c constraints.txt -e ".[test]"
 	touch $@
 
 # Debian packages for headless MuJoCo rendering (EGL on the CPU); needs root or sudo.
@@ -24,5 +25,5 @@ test: system-packages install
 	$(BIN)/python -m pytest
 
 bench: install
-	$(BIN)/pip install -q -e ".[bench]"
+	$(BIN)/pip install -q -c constraints.txt -e ".[bench]"
 	$(BIN)/python benchmarks/bench.py --json benchmarks/results.json
