@@ -68,6 +68,7 @@ class Run:
     final_eval: dict[str, Any] = field(default_factory=dict)  # final_eval.json; {} when absent
     peer: dict[str, Any] | None = None  # peer.json of a run trained by another system
     source: Path | None = None  # the experiment or directory it was read from
+    label: str | None = None  # the user's name for its arm (`mcrl report --with DIR=LABEL`)
 
     @property
     def has_eval(self) -> bool:
@@ -221,10 +222,25 @@ def _extra_runs(path: Path) -> list[Run]:
     return [_read_run(d, f"{path.name}/{d.name}", None, None, {}, path) for d in subdirs]
 
 
+def split_label(arg: str | Path) -> tuple[Path, str | None]:
+    """``DIR`` or ``DIR=LABEL`` (``mcrl report --with``) -> (DIR, LABEL or None). A directory whose name holds
+    "=" is taken whole; otherwise the first "=" after which the text before it names a directory splits it."""
+    text = str(arg)
+    if Path(text).is_dir() or "=" not in text:
+        return Path(text), None
+    for i, ch in enumerate(text):
+        if ch == "=" and Path(text[:i]).is_dir():
+            label = text[i + 1:].strip()
+            if not label:
+                raise MCRLError(f"--with {text}: the label after '=' is empty: give --with DIR=LABEL or just DIR")
+            return Path(text[:i]), label
+    return Path(text), None  # not a directory either way: _extra_runs says so
+
+
 def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path] = ()) -> Experiment:
     """Read sweep.json, every run directory it lists, and the runs of ``extra_runs`` (experiment
-    directories, run directories, or directories of run directories); raise MCRLError when there is
-    nothing to report."""
+    directories, run directories, or directories of run directories, each optionally ``DIR=LABEL`` to name
+    its arm); raise MCRLError when there is nothing to report."""
     d = Path(experiment_dir)
     if not d.is_dir():
         raise MCRLError(f"experiment directory {d} does not exist: pass the directory `mcrl sweep` wrote "
@@ -233,12 +249,14 @@ def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path]
         raise MCRLError(f"{d} has no sweep.json: pass the experiment directory `mcrl sweep` wrote "
                         "(for a single run use `mcrl plot RUN_DIR`)")
     sweep, runs = _sweep_runs(d)
-    extra = [Path(p) for p in extra_runs]
+    labelled = [split_label(p) for p in extra_runs]
+    extra = [p for p, _ in labelled]
     seen = {r.dir.resolve() for r in runs}
-    for p in extra:
+    for p, label in labelled:
         for r in _extra_runs(p):
             if r.dir.resolve() not in seen:  # a run given twice (e.g. --with EXP itself) counts once
                 seen.add(r.dir.resolve())
+                r.label = label
                 runs.append(r)
     if not any(r.has_eval or r.final is not None for r in runs):
         started = sum(r.status != "missing" for r in runs)
@@ -257,8 +275,8 @@ def _settings(config: dict[str, Any]) -> dict[str, Any] | None:
     (so a key left out equals its default), without :data:`NOT_CONFIGURATION`. None without config.json."""
     if not config:
         return None
-    try:
-        full = Config.from_run_json(config).to_dict()
+    try:  # from_dict, not from_run_json: grouping needs the defaults filled in, not a judgement on the version
+        full = Config.from_dict(config).to_dict()
     except (MCRLError, TypeError, ValueError):
         full = dict(config)  # a config this mcrl cannot read (other keys): compare it as written
     return {k: v for k, v in full.items() if k not in NOT_CONFIGURATION}
@@ -299,10 +317,12 @@ def _varying(settings: Sequence[dict[str, Any]]) -> list[str]:
 
 def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
     """Group runs into configurations: equal settings (and, for reference arms, the same system and
-    version), whatever their sweep labels say. Labels are sweep.json's config keys when they name the
-    groups one-to-one, else the differing settings, e.g. ``mc_alpha=0.2, mc_reduction=batch``."""
-    buckets: dict[tuple[str, str], list[Run]] = {}
-    settings: dict[tuple[str, str], dict[str, Any]] = {}
+    version), whatever their sweep labels say. Labels are the user's (``--with DIR=LABEL``) where given; else
+    sweep.json's config keys when they name the groups one-to-one and come from one sweep (another sweep's
+    "fetchpush-sacmc-0.2" may mean something else); else the differing settings, e.g.
+    ``mc_alpha=0.2, mc_reduction=batch``."""
+    buckets: dict[tuple[str, str, str], list[Run]] = {}  # (family, settings, user label) -> runs
+    settings: dict[tuple[str, str, str], dict[str, Any]] = {}
     unstarted: list[Run] = []
     for r in runs:
         s = _settings(r.config)
@@ -311,30 +331,38 @@ def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
             continue
         if r.peer is not None:
             s["version"] = r.peer.get("version")
-        key = (_family(r), json.dumps(s, sort_keys=True, default=str))
+        key = (_family(r), json.dumps(s, sort_keys=True, default=str), r.label or "")
         buckets.setdefault(key, []).append(r)
         settings[key] = s
     # Runs not started have no config.json: they join the group of their sweep's config_key, or, when
     # that label spans several groups, the one whose settings agree with the run's sweep overrides.
     for r in unstarted:
-        homes = [k for k, v in buckets.items() if k[0] == _family(r) and k in settings and r.config_key is not None
+        homes = [k for k, v in buckets.items() if k[0] == _family(r) and k[2] == (r.label or "") and k in settings
+                 and r.config_key is not None
                  and any(o.config_key == r.config_key and o.source == r.source for o in v)]
         if len(homes) > 1:
             homes = [k for k in homes if all(_same(settings[k].get(o), v) for o, v in r.overrides.items()
                                              if o not in NOT_CONFIGURATION)]
-        key = homes[0] if len(homes) == 1 else (_family(r), f"unstarted:{r.source}:{r.config_key or r.name}")
+        key = homes[0] if len(homes) == 1 else (_family(r), f"unstarted:{r.source}:{r.config_key or r.name}",
+                                                r.label or "")
         buckets.setdefault(key, []).append(r)
 
-    labels: dict[tuple[str, str], str] = {}
+    labels: dict[tuple[str, str, str], str] = {}
     for fam in dict.fromkeys(k[0] for k in buckets):
         keys = [k for k in buckets if k[0] == fam]
         sweep_keys = [{r.config_key for r in buckets[k]} for k in keys]
+        unnamed = [k for k in keys if not k[2]]
         one_to_one = (all(len(s) == 1 and None not in s for s in sweep_keys)
-                      and len({next(iter(s)) for s in sweep_keys}) == len(keys))
+                      and len({next(iter(s)) for s in sweep_keys}) == len(keys)
+                      and len({r.source for k in unnamed for r in buckets[k]}) <= 1)
         vary = _varying([settings[k] for k in keys if k in settings])
         for k, sk in zip(keys, sweep_keys):
             parts = ", ".join(f"{v}={_fmt(settings[k].get(v))}" for v in vary) if k in settings else ""
-            if fam:
+            user = k[2]
+            if user:  # the user's name; the settings too when one directory holds several configurations
+                several = sum(kk[2] == user for kk in keys) > 1
+                labels[k] = f"{user} ({parts})" if several and parts else user
+            elif fam:
                 labels[k] = f"{fam} ({parts})" if parts else fam
             elif one_to_one:
                 labels[k] = next(iter(sk))

@@ -6,11 +6,40 @@ import base64
 import html
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-# ("h", level, text) | ("p", text) | ("ul", [text]) | ("table", headers, rows) | ("fig", file, png, caption)
-Block = tuple[Any, ...]
+
+@dataclass(frozen=True)
+class Heading:
+    level: int
+    text: str
+
+
+@dataclass(frozen=True)
+class Paragraph:
+    text: str
+
+
+@dataclass(frozen=True)
+class Bullets:
+    items: Sequence[str]
+
+
+@dataclass(frozen=True)
+class Table:
+    header: Sequence[str]
+    rows: Sequence[Sequence[str]]
+
+
+@dataclass(frozen=True)
+class Figure:
+    file: str  # the PNG's name beside report.md
+    png: bytes
+    caption: str
+
+
+Block = Heading | Paragraph | Bullets | Table | Figure
 
 
 def _md_cell(s: str) -> str:
@@ -21,20 +50,19 @@ def to_markdown(blocks: Sequence[Block], out_dir: Path) -> str:
     """The Markdown of ``blocks``; writes each figure's PNG into ``out_dir``."""
     parts = []
     for b in blocks:
-        if b[0] == "h":
-            parts.append(f"{'#' * b[1]} {b[2]}")
-        elif b[0] == "p":
-            parts.append(b[1])
-        elif b[0] == "ul":
-            parts.append("\n".join(f"- {item}" for item in b[1]))
-        elif b[0] == "table":
-            head, rows = b[1], b[2]
-            lines = ["| " + " | ".join(map(_md_cell, head)) + " |", "|" + "---|" * len(head)]
-            lines += ["| " + " | ".join(map(_md_cell, row)) + " |" for row in rows]
+        if isinstance(b, Heading):
+            parts.append(f"{'#' * b.level} {b.text}")
+        elif isinstance(b, Paragraph):
+            parts.append(b.text)
+        elif isinstance(b, Bullets):
+            parts.append("\n".join(f"- {item}" for item in b.items))
+        elif isinstance(b, Table):
+            lines = ["| " + " | ".join(map(_md_cell, b.header)) + " |", "|" + "---|" * len(b.header)]
+            lines += ["| " + " | ".join(map(_md_cell, row)) + " |" for row in b.rows]
             parts.append("\n".join(lines))
-        elif b[0] == "fig":
-            (out_dir / b[1]).write_bytes(b[2])
-            parts.append(f"![{b[3]}]({b[1]})\n\n*{b[3]}*")
+        elif isinstance(b, Figure):
+            (out_dir / b.file).write_bytes(b.png)
+            parts.append(f"![{b.caption}]({b.file})\n\n*{b.caption}*")
     return "\n\n".join(parts) + "\n"
 
 
@@ -61,18 +89,18 @@ def to_html(blocks: Sequence[Block], title: str) -> str:
     parts = [f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
              f"<style>{_CSS}</style></head><body>"]
     for b in blocks:
-        if b[0] == "h":
-            parts.append(f"<h{b[1]} id='{_slug(b[2])}'>{_inline_html(b[2])}</h{b[1]}>")
-        elif b[0] == "p":
-            parts.append(f"<p>{_inline_html(b[1])}</p>")
-        elif b[0] == "ul":
-            parts.append("<ul>" + "".join(f"<li>{_inline_html(i)}</li>" for i in b[1]) + "</ul>")
-        elif b[0] == "table":
-            head = "".join(f"<th>{_inline_html(h)}</th>" for h in b[1])
-            body = "".join("<tr>" + "".join(f"<td>{_inline_html(c)}</td>" for c in row) + "</tr>" for row in b[2])
+        if isinstance(b, Heading):
+            parts.append(f"<h{b.level} id='{_slug(b.text)}'>{_inline_html(b.text)}</h{b.level}>")
+        elif isinstance(b, Paragraph):
+            parts.append(f"<p>{_inline_html(b.text)}</p>")
+        elif isinstance(b, Bullets):
+            parts.append("<ul>" + "".join(f"<li>{_inline_html(i)}</li>" for i in b.items) + "</ul>")
+        elif isinstance(b, Table):
+            head = "".join(f"<th>{_inline_html(h)}</th>" for h in b.header)
+            body = "".join("<tr>" + "".join(f"<td>{_inline_html(c)}</td>" for c in row) + "</tr>" for row in b.rows)
             parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
-        elif b[0] == "fig":
-            data = base64.b64encode(b[2]).decode("ascii")
-            parts.append(f"<figure><img alt='{html.escape(b[3])}' src='data:image/png;base64,{data}'>"
-                         f"<figcaption>{_inline_html(b[3])}</figcaption></figure>")
+        elif isinstance(b, Figure):
+            data = base64.b64encode(b.png).decode("ascii")
+            parts.append(f"<figure><img alt='{html.escape(b.caption)}' src='data:image/png;base64,{data}'>"
+                         f"<figcaption>{_inline_html(b.caption)}</figcaption></figure>")
     return "\n".join(parts) + "\n</body></html>\n"

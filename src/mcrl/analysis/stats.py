@@ -312,9 +312,7 @@ def seeds_to_detect(x: Any, y: Any, difference: float, alpha: float = 0.05, powe
     return max(2, int(np.ceil(n - 1e-9)))  # the tolerance keeps an exact solution from rounding up
 
 
-# ------------------------------------------------------------------------------------ claims
-
-REPRODUCED, NOT_REPRODUCED, NOT_DECIDABLE = "reproduced", "not reproduced", "not decidable with this many seeds"
+# ------------------------------------------------------------------------------------ effect sizes
 
 
 def mean_difference_ci(x: Any, y: Any, n_boot: int = DEFAULT_N_BOOT, conf: float = 0.95, seed: int = 0) -> Interval:
@@ -324,29 +322,3 @@ def mean_difference_ci(x: Any, y: Any, n_boot: int = DEFAULT_N_BOOT, conf: float
     diffs = (a[rng.integers(a.size, size=(n_boot, a.size))].mean(1)
              - b[rng.integers(b.size, size=(n_boot, b.size))].mean(1))
     return (float(a.mean() - b.mean()), *_percentiles(diffs, conf))
-
-
-def claim_verdict(x: Any, y: Any, claimed_difference: float, min_seeds: int, n_boot: int = DEFAULT_N_BOOT,
-                  conf: float = 0.95, seed: int = 0) -> tuple[str, str]:
-    """Do these runs bear out a claim "X scores higher than Y, by about ``claimed_difference``"?
-
-    (verdict, reason), the verdict one of REPRODUCED (P(X > Y) has its CI above 0.5), NOT_REPRODUCED (the
-    CI of mean(x) - mean(y) lies below the claimed difference: an improvement that large is excluded), or
-    NOT_DECIDABLE (fewer than ``min_seeds`` runs of either, or both readings are still possible).
-    """
-    a, b = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
-    if min(a.size, b.size) < min_seeds:
-        return NOT_DECIDABLE, f"{a.size} vs {b.size} seeds, fewer than the {min_seeds} a verdict needs"
-    p, p_lo, p_hi = probability_of_improvement(a, b, n_boot=n_boot, conf=conf, seed=seed)
-    d, d_lo, d_hi = mean_difference_ci(a, b, n_boot=n_boot, conf=conf, seed=seed)
-    pct = f"{conf:.0%}"
-    poi = f"P(X > Y) = {p:.3f} [{p_lo:.3f}, {p_hi:.3f}]"
-    diff = f"mean difference {d:+.3f} [{d_lo:+.3f}, {d_hi:+.3f}]"
-    if p_lo > 0.5:
-        return REPRODUCED, f"{poi}: its {pct} CI lies above 0.5 ({diff})"
-    if d_hi < claimed_difference:
-        worse = "; X does worse than Y" if p_hi < 0.5 else ""
-        return NOT_REPRODUCED, (f"the claimed difference {claimed_difference:+.3f} lies above the {pct} CI of our "
-                                f"{diff}, and {poi}{worse}")
-    return NOT_DECIDABLE, (f"{poi} includes 0.5 and the {pct} CI of our {diff} includes the claimed "
-                           f"{claimed_difference:+.3f}: these seeds cannot tell the two apart")
