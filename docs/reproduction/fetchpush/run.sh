@@ -114,7 +114,7 @@ case "$cmd" in
       nohup "$M" sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 \
         --workers "${VARIANT_WORKERS:-2}" --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
       echo "started the code-variant sweep (log $WORK/code-variant.log)"
-      mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --exp EXP" \
+      mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --workers ${VARIANT_WORKERS:-2} --threads-per-run 1 --exp EXP" \
         "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
     fi ;;
   *) echo "usage: $0 start|sync|status" >&2; exit 2 ;;
