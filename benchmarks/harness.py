@@ -16,13 +16,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from mcrl.algo import normaliser
+from mcrl.algo import diagnostics, normaliser
 from mcrl.config import resolve_config
-from mcrl.envs import episode_seed, flatten_obs, to_env_action
-from mcrl.run.rundir import read_rows
-from mcrl.algo.sac import Batch
+from mcrl.envs import flatten_obs, to_env_action
+from mcrl.run.envpool import EnvPool
+from mcrl.run.learner import Learner, train_step
+from mcrl.run.member import open_member
 from mcrl.run.policy import build
-from mcrl.run.trainer import Trainer, new_run_state, train
+from mcrl.run.rundir import read_rows
+from mcrl.run.trainer import train
 
 
 def _flops(compiled) -> float:
@@ -50,7 +52,6 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
         obs = nxt if not (term or trunc) else env.reset(seed=i)[0]
     env.close()
     batches = [buffer.sample(cfg.batch_size, rng) for _ in range(8)]
-    batches = [Batch(b["obs"], b["action"], b["reward"], b["next_obs"], b["terminated"]) for b in batches]
     state = agent.init(0)
     if full_history and state.norm is not None:
         n = cfg.mc_history_values or cfg.total_steps * cfg.mc_values_per_step
@@ -59,43 +60,46 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
             state = state._replace(norm=normaliser.from_values(values, None))
         else:
             state = state._replace(norm=normaliser.push(state.norm, values))
-    update = jax.jit(agent.update, donate_argnums=0)
+    step = jax.jit(lambda s, d, b: train_step(agent, s, d, b), donate_argnums=(0, 1))  # what the loop compiles
     gflop = _flops(jax.jit(agent.update).lower(state, batches[0]).compile()) / 1e9
+    diag = diagnostics.init()
     for i in range(10):
-        state = update(state, batches[i % 8])
+        state, diag = step(state, diag, batches[i % 8])
     jax.block_until_ready(state)
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
         for i in range(calls):
-            state = update(state, batches[i % 8])
+            state, diag = step(state, diag, batches[i % 8])
         jax.block_until_ready(state)
         times.append((time.perf_counter() - t) / calls * 1e3)
     return {"ms_per_grad_step": statistics.median(times), "ms_per_grad_step_all": times, "grad_step_gflop": gflop}
 
 
 def measure_env_step(preset: str, repeats: int = 5, steps: int = 500) -> dict:
-    """ms per environment step of the trainer's acting path (`Trainer.env_step`): actor forward + env.step +
-    buffer insert."""
+    """ms per environment step of the training loop's acting path (`mcrl.run.trainer.run_loop`): actor forward +
+    env.step + buffer insert."""
     cfg = resolve_config(preset, {"buffer_size": 20_000})
-    env, spec, agent, buffer = build(cfg)
     times = []
     with tempfile.TemporaryDirectory() as d:
-        trainer = Trainer(cfg, Path(d), env, spec, agent, resume_step=None)
-        rs = new_run_state(cfg, agent, buffer)
-        rs.progress.step = cfg.learning_starts  # act with the policy, not the warm-up's uniform actions
-        flat = flatten_obs(env.reset(seed=0)[0])
+        member, state, diag = open_member(cfg, Path(d), resume=False)
+        learner, pool = Learner(member.agent, state, diag), EnvPool([cfg], envs=[member.env])
+        member.progress.step = cfg.learning_starts  # act with the policy, not the warm-up's uniform actions
+        member.obs = pool.reset(0, member.episode_seed())
         for rep in range(repeats + 1):
             t = time.perf_counter()
             for _ in range(steps):
-                flat, _, term, trunc, _ = trainer.env_step(rs, flat)
-                rs.progress.step += 1
-                if term or trunc:
-                    rs.progress.episode += 1
-                    flat = flatten_obs(env.reset(seed=episode_seed(0, 0, rs.progress.episode))[0])
+                actions = learner.act(member.obs[None], member.progress.step)
+                res = pool.step(actions)
+                member.store(actions[0], res.next_obs[0], res.reward[0], bool(res.terminated[0]),
+                             bool(res.truncated[0]))
+                if res.terminated[0] or res.truncated[0]:
+                    member.end_episode(res.success[0])
+                    member.obs = pool.reset(0, member.episode_seed())
             if rep > 0:  # the first block compiles
                 times.append((time.perf_counter() - t) / steps * 1e3)
-        trainer.close()
+        pool.close()
+        member.close()
     return {"ms_per_env_step": statistics.median(times), "ms_per_env_step_all": times}
 
 

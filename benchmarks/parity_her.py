@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.batches):
             if name == "mcrl":
                 b = ours.sample(cfg.batch_size, rng)
-                obs, rew, relab = b["obs"], b["reward"], b["relabelled"]
+                obs, rew, relab = b.obs, b.reward, ours.relabelled(cfg.batch_size)
             else:
                 s = theirs.sample(cfg.batch_size)
                 o = {k: v.numpy() for k, v in s.observations.items()}

@@ -139,7 +139,7 @@ def checkpoint_batch(cfg, agent, ckpt: Path, seed: int):
         raise SystemExit(f"error: {ckpt} has no replay buffer (save_buffer=false): no batch to compare on")
     buffer.load_arrays(arrays)
     b = buffer.sample(cfg.batch_size, np.random.default_rng(seed))
-    batch = {k: np.asarray(b[k], np.float32) for k in ("obs", "action", "reward", "next_obs", "terminated")}
+    batch = {k: np.asarray(v, np.float32) for k, v in b._asdict().items()}
     # the trained parameters with fresh optimiser states, as SB3's side starts with fresh Adam moments
     fresh = agent.init(seed)
     state = fresh._replace(pi=fresh.pi._replace(params=state.pi.params), q=fresh.q._replace(params=state.q.params),
@@ -285,7 +285,7 @@ def mcrl_snapshot(state) -> dict:
     import jax
 
     m = lambda learned: jax.device_get(learned.opt[0].mu)  # noqa: E731  (optax.adam = (ScaleByAdam, scale))
-    return {"params": {"actor": jax.device_get(state.actor), "critic": jax.device_get(state.critic),
+    return {"params": {"actor": jax.device_get(state.pi.params), "critic": jax.device_get(state.q.params),
                        "critic_target": jax.device_get(state.q_target),
                        "log_ent_coef": np.float32(state.ent.params)},
             "adam_m": {"actor": m(state.pi), "critic": m(state.q), "log_ent_coef": np.float32(m(state.ent))}}
@@ -443,9 +443,8 @@ def compare(agent, state0, batch_np, layout, mode: str, steps: int, seed: int) -
         update = jax.jit(lambda s, b: agent.update(s, b))
         state = state0
         for _ in range(steps):
-            state = update(state, batch)
-            metrics, state = agent.read_metrics(state)
-            m_loss.append(metrics)
+            state, metrics = update(state, batch)
+            m_loss.append({k: float(v) for k, v in metrics.items()})
             m_snaps.append(mcrl_snapshot(state))
 
     # SB3: same weights, same batch, same noise
@@ -507,8 +506,8 @@ def forward_check(agent, state, model, obs_dim, act_dim, seed) -> dict:
     rng = np.random.default_rng(seed + 1)
     obs = rng.normal(size=(512, obs_dim)).astype(np.float32)
     act = rng.uniform(-1, 1, (512, act_dim)).astype(np.float32)
-    mean, log_std = (np.asarray(x) for x in agent.actor_net.apply({"params": state.actor}, obs))
-    q = np.asarray(agent.critic_net.apply({"params": state.critic}, obs, act))
+    mean, log_std = (np.asarray(x) for x in agent.actor_net.apply({"params": state.pi.params}, obs))
+    q = np.asarray(agent.critic_net.apply({"params": state.q.params}, obs, act))
     qt = np.asarray(agent.critic_net.apply({"params": state.q_target}, obs, act))
     with torch.no_grad():
         to, ta = torch.from_numpy(obs), torch.from_numpy(act)
@@ -528,7 +527,7 @@ def saturation_stats(agent, state, batch_np, eps) -> dict:
 
     import torch
 
-    mean, log_std = agent.actor_net.apply({"params": state.actor}, batch_np["obs"])
+    mean, log_std = agent.actor_net.apply({"params": state.pi.params}, batch_np["obs"])
     u = mean + jnp.exp(log_std) * eps
     exact = (2.0 * (jnp.log(2.0) - u - jnp.logaddexp(0.0, -2.0 * u))).sum(-1)
     t_torch = torch.tanh(torch.from_numpy(np.array(u)))
@@ -644,7 +643,7 @@ def main(argv=None) -> int:
 
     # the saturating variant: same batch, actor mean-head bias set to +-sat_mean (random signs)
     signs = np.where(np.random.default_rng(args.seed + 2).random(spec.act_dim) < 0.5, -1.0, 1.0)
-    actor_sat = jax.tree.map(jnp.copy, state0.actor)
+    actor_sat = jax.tree.map(jnp.copy, state0.pi.params)
     actor_sat["mean"]["bias"] = jnp.asarray(signs * args.sat_mean, jnp.float32)
     state_sat = state0._replace(pi=state0.pi._replace(params=actor_sat))
 

@@ -135,11 +135,12 @@ def ms(f, state, *args, calls=20):
 out = {}
 for n in spec["runs"]:
     if n == 1:
-        out[n] = ms(jax.jit(agent.update, donate_argnums=0), agent.init(0), batch(0))
+        out[n] = ms(jax.jit(lambda s, b: agent.update(s, b)[0], donate_argnums=0), agent.init(0), batch(0))
     else:
         stack = lambda xs: jax.tree.map(lambda *a: jnp.stack(a), *xs)
         hyper = Hyper(*(jnp.full(n, v, jnp.float32) for v in Hyper.of(cfg)))
-        out[n] = ms(jax.jit(jax.vmap(agent.update), donate_argnums=0), stack([agent.init(i) for i in range(n)]),
+        out[n] = ms(jax.jit(jax.vmap(lambda s, b, h: agent.update(s, b, h)[0]), donate_argnums=0),
+                    stack([agent.init(i) for i in range(n)]),
                     stack([batch(i) for i in range(n)]), hyper)
 print(json.dumps(out))
 """

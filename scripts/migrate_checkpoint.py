@@ -67,9 +67,9 @@ def migrate_config(d: dict) -> dict:
     """A run config (config.json or meta.json's "config") in today's terms: 0.1's gets `init=flax` and
     `mc_history` in gradient steps; keys added since take their defaults."""
     d = dict(d)
-    if "init" not in d:  # mcrl 0.1
+    if "init" not in d and "mc_history" in d:  # mcrl 0.1: every config.json it wrote lists mc_history
         d["init"] = "flax"
-        if d.get("mc_history") is not None:
+        if d["mc_history"] is not None:
             per_step = 1 if d.get("mc_reduction") == "batch" else int(d.get("batch_size", 256))
             d["mc_history"] = max(1, int(d["mc_history"]) // per_step)
     from mcrl.config import Config  # no JAX: fills in the keys added since, and validates

@@ -65,7 +65,7 @@ def test_default_normaliser_history_holds_every_value_of_the_run(small):
                   -np.ones(cfg.batch_size, np.float32), obs + 0.1, np.zeros(cfg.batch_size, np.float32))
     update = jax.jit(agent.update)
     for _ in range(30):
-        state = update(state, batch)
+        state, _ = update(state, batch)
     assert int(state.norm.count) == 30 * cfg.batch_size
 
 
@@ -108,12 +108,12 @@ def test_her_recomputes_terminated_for_environments_that_end_on_success():
             obs = nxt
     assert buf.terminated[:len(buf)].sum() == 0
     b = buf.sample(512, rng)
-    rel = b["relabelled"]
-    achieved, goal = b["next_obs"][:, od:od + gd], b["next_obs"][:, od + gd:]
+    rel = buf.relabelled(512)
+    achieved, goal = b.next_obs[:, od:od + gd], b.next_obs[:, od + gd:]
     reached = np.linalg.norm(achieved - goal, axis=1) <= 0.45
     assert reached[rel].any()  # `future` picks the transition's own achieved goal often enough
-    np.testing.assert_array_equal(b["terminated"][rel], reached[rel].astype(np.float32))
-    np.testing.assert_array_equal(b["terminated"][~rel], 0.0)
+    np.testing.assert_array_equal(b.terminated[rel], reached[rel].astype(np.float32))
+    np.testing.assert_array_equal(b.terminated[~rel], 0.0)
     env.close()
 
 
@@ -128,7 +128,7 @@ def test_fetch_relabelling_never_terminates():
         buf.add(flatten_obs(obs), a, r, flatten_obs(nxt), term, term or trunc)
         obs = nxt if not (term or trunc) else env.reset(seed=t)[0]
     env.close()
-    assert buf.sample(256, np.random.default_rng(0))["terminated"].sum() == 0
+    assert buf.sample(256, np.random.default_rng(0)).terminated.sum() == 0
 
 
 def test_find_falls_back_when_latest_dangles(tmp_path, small):

@@ -34,19 +34,19 @@ def test_relabelled_rewards_equal_compute_reward_and_goals_come_from_the_future(
     env, spec, buf = _filled_buffer(cfg)
     od, gd = spec.observation_dim, spec.goal_dim
     b = buf.sample(256, np.random.default_rng(1))
-    rel = b["relabelled"]
+    rel = buf.relabelled(256)
     assert rel.sum() == round(256 * 4 / 5)
-    ag_next = b["next_obs"][:, od:od + gd]
-    goal = b["obs"][:, od + gd:]
-    np.testing.assert_array_equal(goal, b["next_obs"][:, od + gd:])
+    ag_next = b.next_obs[:, od:od + gd]
+    goal = b.obs[:, od + gd:]
+    np.testing.assert_array_equal(goal, b.next_obs[:, od + gd:])
     expected = np.array([env.unwrapped.compute_reward(ag_next[i], goal[i], {}) for i in range(256)])
-    np.testing.assert_array_equal(b["reward"], expected.astype(np.float32))
+    np.testing.assert_array_equal(b.reward, expected.astype(np.float32))
     # some relabelled goals are reached (reward 0), unlike random real transitions of FetchReach
-    assert (b["reward"][rel] == 0).mean() > 0.15
+    assert (b.reward[rel] == 0).mean() > 0.15
     # each relabelled goal is the next achieved goal of this or a later step of the same episode
     T = spec.max_episode_steps
     for i in np.flatnonzero(rel)[:60]:
-        slot = np.flatnonzero((buf.action[: len(buf)] == b["action"][i]).all(1))[0]  # random actions are unique
+        slot = np.flatnonzero((buf.action[: len(buf)] == b.action[i]).all(1))[0]  # random actions are unique
         ep_start = slot - slot % T
         future_ag = buf.next_obs[slot: ep_start + T, od:od + gd]
         assert (np.abs(future_ag - goal[i]).max(1) == 0).any()
@@ -58,7 +58,7 @@ def test_final_strategy_uses_the_last_achieved_goal():
     od, gd = spec.observation_dim, spec.goal_dim
     finals = buf.next_obs[np.arange(3) * 50 + 49, od:od + gd]
     b = buf.sample(128, np.random.default_rng(2))
-    goals = b["obs"][b["relabelled"], od + gd:]
+    goals = b.obs[buf.relabelled(128), od + gd:]
     assert all((np.abs(finals - g).max(1) == 0).any() for g in goals)
 
 
@@ -70,14 +70,14 @@ def test_relabelled_transitions_carry_the_mc_reward():
     agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
     state = agent.init(0)
     b = buf.sample(256, np.random.default_rng(3))
-    batch = Batch(*(jnp.asarray(b[k]) for k in ("obs", "action", "reward", "next_obs", "terminated")))
+    batch = Batch(*(jnp.asarray(x) for x in b))
     r_mc, kl, norm, bounds, *_ = jax.jit(agent.mc_reward)(state, batch)
-    out = agent.mc_models.forward(state.mc, batch.obs, batch.action)  # mc_dim == obs_dim here
+    out = agent.mc_net.forward(state.mc_models.params, batch.obs, batch.action)  # mc_dim == obs_dim here
     direct_kl = np.asarray(transition_kl(out))
     np.testing.assert_allclose(np.asarray(kl), direct_kl, rtol=1e-5)
     lo, hi = normaliser.bounds(normaliser.push(state.norm, jnp.asarray(direct_kl)), 0.0, 94.0)
     expected = np.asarray(normaliser.scale(jnp.asarray(direct_kl), lo, hi, -1.0, 0.0))
-    rel = b["relabelled"]
+    rel = buf.relabelled(256)
     np.testing.assert_allclose(np.asarray(r_mc)[rel], expected[rel], rtol=1e-5, atol=1e-6)
     assert np.ptp(np.asarray(r_mc)[rel]) > 0  # a real per-transition signal, not a constant
     # the goal matters: un-relabelled copies of the same transitions give different KL

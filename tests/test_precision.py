@@ -58,8 +58,8 @@ def states():
 
 
 def test_parameters_stay_float32_and_identical(states):
-    for net in ("actor", "critic", "mc"):
-        f32, bf16 = (getattr(states[p], net) for p in ("float32", "bfloat16"))
+    for net in ("pi", "q", "mc_models"):
+        f32, bf16 = (getattr(states[p], net).params for p in ("float32", "bfloat16"))
         assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(bf16)), net
         assert _leaves_equal(f32, bf16), net  # same names, shapes, dtypes and values: old checkpoints restore
 
@@ -179,7 +179,7 @@ def test_compiled_update_uses_bfloat16_dots_only_when_asked(states):
     # every forward pass: MC models 2 x (5 + 2 heads), critics (target, current, the actor's) 3 x (3 + 1),
     # actor (next action, current) 2 x (3 + 2 heads); the backward passes' matmuls stay float32
     assert len(bf16_dots) == 14 + 12 + 10, len(bf16_dots)
-    new = update(state, batch)
+    new, _ = update(state, batch)
     for learned in (new.pi, new.q, new.mc_models):
         assert all(x.dtype == jnp.float32 and bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(learned.params))
 

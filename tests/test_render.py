@@ -41,7 +41,7 @@ def test_timeline_values_equal_the_mc_modules_kl(run_dir):
         env.close()
     # recompute independently from the recorded trajectory with the MC models' raw outputs
     s = jnp.asarray(ep["flat_obs"][:-1, : agent.mc_dim])
-    out = agent.mc_models.forward(state.mc, s, jnp.asarray(ep["policy_actions"]))
+    out = agent.mc_net.forward(state.mc_models.params, s, jnp.asarray(ep["policy_actions"]))
     kl = np.asarray(gaussian_kl(out.mu_t, out.log_std_t, out.mu_a, out.log_std_a).sum(-1))
     lo, hi = normaliser.bounds(state.norm, cfg.min_percentile, cfg.max_percentile)
     r_mc = np.asarray(normaliser.scale(jnp.asarray(kl), lo, hi, cfg.mc_reward_low, cfg.mc_reward_high))
@@ -65,8 +65,10 @@ def test_training_records_evaluation_videos_into_the_run_and_tensorboard(tmp_pat
     from tests.conftest import SMALL
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+    from mcrl.video.render import record_training_video
+
     cfg = resolve_config("fetchreach-sacmc", {**SMALL, "total_steps": 200, "eval_every": 100, "video_every": 200})
-    run = train(cfg, tmp_path / "v", progress=False)
+    run = train(cfg, tmp_path / "v", progress=False, video=record_training_video)
     assert (run / "videos" / "eval_step200.mp4").stat().st_size > 10_000
     assert not (run / "videos" / "eval_step100.mp4").exists()
     acc = EventAccumulator(str(run), size_guidance={"images": 0})

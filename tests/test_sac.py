@@ -29,20 +29,20 @@ def test_alpha_zero_with_mc_models_is_bit_identical_to_sac(tmp_path, small):
     mc0 = _run(tmp_path, "mc0", small, mc_alpha=0.0, mc_models=True)
     mc2 = _run(tmp_path, "mc2", small, mc_alpha=0.2)
     s_sac, s_mc0, s_mc2 = _params(sac), _params(mc0), _params(mc2)
-    assert s_mc0.mc is not None and s_sac.mc is None  # the MC models really trained alongside
-    assert _same(s_sac.actor, s_mc0.actor) and _same(s_sac.critic, s_mc0.critic)
+    assert s_mc0.mc_models is not None and s_sac.mc_models is None  # the MC models really trained alongside
+    assert _same(s_sac.pi.params, s_mc0.pi.params) and _same(s_sac.q.params, s_mc0.q.params)
     assert np.array_equal(s_sac.ent.params, s_mc0.ent.params)
     assert _same(s_sac.q.opt, s_mc0.q.opt) and _same(s_sac.q_target, s_mc0.q_target)
     assert (sac / "eval.csv").read_text() == (mc0 / "eval.csv").read_text()
     # control: a non-zero weight changes the critic (the test can fail)
-    assert not _same(s_sac.critic, s_mc2.critic)
+    assert not _same(s_sac.q.params, s_mc2.q.params)
 
 
 def test_same_seed_same_run_and_different_seed_differs(tmp_path, small):
     a, b = _run(tmp_path, "a", small, mc_alpha=0.2), _run(tmp_path, "b", small, mc_alpha=0.2)
     c = _run(tmp_path, "c", small, mc_alpha=0.2, seed=1)
     assert _same(_params(a), _params(b))
-    assert not _same(_params(a).actor, _params(c).actor)
+    assert not _same(_params(a).pi.params, _params(c).pi.params)
 
 
 def test_checkpoint_holds_everything_and_no_pickle(tmp_path, small):

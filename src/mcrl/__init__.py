@@ -16,8 +16,9 @@ __version__ = "0.1.0"
 def train(config: Config, run_dir=None, progress: bool = True):
     """Train SAC / SAC-MC with `config`; returns the run directory (see docs/run-directory.md)."""
     from mcrl.run.trainer import train as _train
+    from mcrl.video.render import record_training_video
 
-    return _train(config, run_dir=run_dir, progress=progress)
+    return _train(config, run_dir=run_dir, progress=progress, video=record_training_video)
 
 
 def evaluate_run(run_dir, episodes: int | None = None, checkpoint: int | None = None) -> dict:

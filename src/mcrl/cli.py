@@ -31,17 +31,19 @@ def _overrides(args) -> dict:
 
 
 def cmd_train(args) -> int:
-    from mcrl.run import trainer
     from mcrl.config import resolve_config
+    from mcrl.run import trainer
+    from mcrl.video.render import record_training_video
 
     if args.resume:
         if args.preset or args.env or args.set:
             raise MCRLError("--resume continues a run with its own config.json: drop --preset/--env/--set")
-        run_dir = trainer.resume(args.resume, progress=not args.no_progress, total_steps=args.steps)
+        run_dir = trainer.resume(args.resume, progress=not args.no_progress, total_steps=args.steps,
+                                 video=record_training_video)
     else:
         preset = args.preset or (None if args.env else DEFAULT_PRESET)
         cfg = resolve_config(preset, _overrides(args))
-        run_dir = trainer.train(cfg, args.run_dir, progress=not args.no_progress)
+        run_dir = trainer.train(cfg, args.run_dir, progress=not args.no_progress, video=record_training_video)
     summary = rundir.read_summary(run_dir)
     print(f"run directory: {run_dir}")
     if summary:
@@ -78,40 +80,12 @@ def cmd_presets(args) -> int:
     return 0
 
 
-def _load_transitions(path: str):
-    import numpy as np
-
-    p = Path(path)
-    if not p.is_file():
-        raise MCRLError(f"data file {path} not found: give an .npz with arrays states, actions, next_states")
-    try:
-        with np.load(p, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files}
-    except Exception as e:  # a corrupt or non-npz file
-        raise MCRLError(f"cannot read {path} as .npz ({type(e).__name__}): save it with numpy.savez") from None
-    missing = [k for k in ("states", "actions", "next_states") if k not in arrays]
-    if missing:
-        raise MCRLError(f"{path} lacks array(s) {missing}: it needs states (N, ds), actions (N, da), next_states (N, ds)")
-    s, a, s2 = (np.asarray(arrays[k]) for k in ("states", "actions", "next_states"))
-    if s.ndim != 2 or a.ndim != 2 or s2.ndim != 2:
-        raise MCRLError(f"{path}: states {s.shape}, actions {a.shape}, next_states {s2.shape} must all be 2-d "
-                        "(N, dim); reshape them")
-    if not (len(s) == len(a) == len(s2)) or s.shape[1] != s2.shape[1]:
-        raise MCRLError(f"{path}: states {s.shape}, actions {a.shape}, next_states {s2.shape} disagree: need the "
-                        "same N everywhere and next_states shaped like states")
-    if len(s) < 10:
-        raise MCRLError(f"{path} holds {len(s)} transitions: measuring MC needs at least 10 (thousands for accuracy)")
-    if not all(np.isfinite(x).all() for x in (s, a, s2)):
-        raise MCRLError(f"{path} contains NaN or inf values: clean the data first")
-    return s, a, s2
-
-
 def cmd_measure(args) -> int:
     import numpy as np
 
-    from mcrl.algo.mc import measure
+    from mcrl.algo.mc import load_transitions, measure
 
-    s, a, s2 = _load_transitions(args.data)
+    s, a, s2 = load_transitions(args.data)
     if args.out and Path(args.out).suffix not in (".npy", ".csv"):
         raise MCRLError(f"--out {args.out}: use a .npy or .csv file name")
     bar = None
@@ -143,158 +117,90 @@ def cmd_measure(args) -> int:
     return 0
 
 
-def _plot(sub) -> None:
-    p = sub.add_parser("plot", help="learning curves of one run (PNG)")
-    p.add_argument("run_dir")
-    p.add_argument("--out", help="PNG path (default RUN_DIR/curves.png)")
+def cmd_plot(args) -> int:
+    require_all(PLOT_MODULES, None, "mcrl plot")
+    from mcrl.analysis.plots import plot_run
 
-    def run(args) -> int:
-        require_all(PLOT_MODULES, None, "mcrl plot")
-        from mcrl.analysis.plots import plot_run
+    print(f"wrote {plot_run(args.run_dir, args.out)}")
+    return 0
 
-        print(f"wrote {plot_run(args.run_dir, args.out)}")
+
+def cmd_report(args) -> int:
+    require_all(REPORT_MODULES, None, "mcrl report")
+    from mcrl.analysis.report import write_report
+
+    print(f"wrote {write_report(args.experiment_dir, args.out, fmt=args.format, extra_runs=args.with_dirs)}")
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    if not args.dry_run:  # a dry run only plans; the sweep may run elsewhere
+        # Looked up, not imported: Ray must be imported after `mcrl sweep` sets its auth environment.
+        if args.backend == "ray":
+            require_installed("ray", "sweep", "mcrl sweep --backend ray")
+        if args.tracking or args.tracking_uri:
+            require_installed("mlflow", "sweep", "mcrl sweep --tracking")
+
+    from mcrl import sweep
+    from mcrl.config import parse_set
+
+    fixed = parse_set(args.set or [])
+    if args.steps is not None:
+        fixed["total_steps"] = args.steps
+    if args.file:
+        if args.preset or args.alphas is not None or args.seeds is not None:
+            raise MCRLError("--file gives the preset and the grid: drop --preset/--alphas/--seeds "
+                            "(or put them in the file)")
+        plan = sweep.plan_from_file(args.file, fixed)
+    elif (args.exp is not None and not (args.preset or args.alphas or args.seeds or fixed)
+          and (args.exp / rundir.SWEEP_JSON).is_file()):
+        plan = sweep.plan_from_experiment(args.exp)
+    else:
+        plan = sweep.plan_from_args(args.preset or DEFAULT_PRESET, args.alphas, args.seeds, fixed)
+    if args.dry_run:
+        for r in plan.runs:
+            print(f"{r.name}  [{r.config_key}, seed {r.seed}]  {r.overrides}")
+        print(f"{len(plan.runs)} runs, preset {plan.preset}; nothing written (--dry-run)")
         return 0
+    try:
+        res = sweep.run_sweep(plan, args.exp, backend=args.backend, workers=args.workers,
+                              threads_per_run=args.threads_per_run, address=args.address,
+                              gpus_per_run=args.gpus_per_run, tracking=args.tracking,
+                              tracking_uri=args.tracking_uri, retries=args.retries,
+                              progress=not args.no_progress, group_size=args.group_size,
+                              env_workers=args.env_workers)
+    except KeyboardInterrupt:
+        print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' checkpoints",
+              file=sys.stderr)
+        return 130
+    done = len(res.finished) + len(res.skipped)
+    print(f"experiment directory: {res.exp_dir} ({done} of {len(plan.runs)} runs finished)")
+    if res.tracking_uri:
+        from mcrl.sweep.tracking import ui_command
 
-    p.set_defaults(func=run)
-
-
-def _report(sub) -> None:
-    p = sub.add_parser("report", help="statistical report of a sweep (Markdown + PNG, or HTML)")
-    p.add_argument("experiment_dir")
-    p.add_argument("--format", choices=("md", "html"), default="md")
-    p.add_argument("--out", help="output directory (default EXPERIMENT_DIR/report)")
-    p.add_argument("--with", dest="with_dirs", action="append", metavar="DIR", default=[],
-                   help="more runs to include (repeatable): another experiment directory, a run directory, or a "
-                   "directory of run directories (directly or in its runs/), e.g. reference arms with a peer.json")
-
-    def run(args) -> int:
-        require_all(REPORT_MODULES, None, "mcrl report")
-        from mcrl.analysis.report import write_report
-
-        print(f"wrote {write_report(args.experiment_dir, args.out, fmt=args.format, extra_runs=args.with_dirs)}")
-        return 0
-
-    p.set_defaults(func=run)
-
-
-def _sweep(sub) -> None:
-    p = sub.add_parser("sweep", help="many runs (alphas x seeds, or a grid file) into one experiment directory",
-                       description="Run a grid of configurations and seeds into one experiment directory "
-                       "(EXP/sweep.json + EXP/runs/<name>/). Re-running with the same --exp skips finished runs "
-                       "and resumes the others from their checkpoints; `mcrl sweep --exp EXP` alone continues "
-                       "the sweep recorded there.")
-    p.add_argument("--preset", help="a preset name (`mcrl presets`)")
-    p.add_argument("--alphas", help="comma-separated mc_alpha values, e.g. 0,0.2,0.4,0.6,0.8,1.0")
-    p.add_argument("--seeds", help="a count (6 = seeds 0..5) or a comma-separated list of seeds")
-    p.add_argument("--steps", type=int, help="total environment steps of every run")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override of a config key (repeatable)")
-    p.add_argument("--file", help="YAML sweep file: preset, grid: {key: [values]}, optional set: {key: value}, seeds")
-    p.add_argument("--exp", type=Path, help="experiment directory (default experiments/<preset>-<time>)")
-    p.add_argument("--backend", choices=("local", "ray", "vmap"), default="local",
-                   help="local: a process per run; ray: a Ray task per run; vmap: runs that share shapes train as "
-                   "one vmapped computation (one process per group, all cores; the fastest on a GPU)")
-    p.add_argument("--group-size", type=int, help="vmap: at most N runs per group (default: all that fit together)")
-    p.add_argument("--env-workers", type=int, default=0, help="vmap: step the group's environments in N processes "
-                   "(default 0: in the group's process)")
-    p.add_argument("--workers", type=int, help="runs at a time (default: the number of cores; ray with --address: "
-                   "as many as the cluster's CPUs allow)")
-    p.add_argument("--threads-per-run", type=int, help="threads of each run (default: cores // workers)")
-    p.add_argument("--address", help="Ray cluster address (HOST:PORT, ray://HOST:PORT or auto); default: a local "
-                   "Ray instance")
-    p.add_argument("--gpus-per-run", type=float, default=0.0, help="GPUs each Ray task asks for (ray only)")
-    p.add_argument("--retries", type=int, default=0, help="restart a run whose worker died, from its last "
-                   "checkpoint, up to N times")
-    p.add_argument("--tracking", action="store_true", help="log every run to MLflow (default store: EXP/mlflow.db)")
-    p.add_argument("--tracking-uri", help="MLflow tracking URI (implies --tracking), e.g. http://host:5000")
-    p.add_argument("--dry-run", action="store_true", help="validate and list the runs; write nothing")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar (run lines are still printed)")
-
-    def run(args) -> int:
-        import sys
-
-        if not args.dry_run:  # a dry run only plans; the sweep may run elsewhere
-            # Looked up, not imported: Ray must be imported after `mcrl sweep` sets its auth environment.
-            if args.backend == "ray":
-                require_installed("ray", "sweep", "mcrl sweep --backend ray")
-            if args.tracking or args.tracking_uri:
-                require_installed("mlflow", "sweep", "mcrl sweep --tracking")
-
-        from mcrl.config import parse_set
-        from mcrl.errors import MCRLError
-        from mcrl import sweep
-
-        fixed = parse_set(args.set or [])
-        if args.steps is not None:
-            fixed["total_steps"] = args.steps
-        if args.file:
-            if args.preset or args.alphas is not None or args.seeds is not None:
-                raise MCRLError("--file gives the preset and the grid: drop --preset/--alphas/--seeds "
-                                "(or put them in the file)")
-            plan = sweep.plan_from_file(args.file, fixed)
-        elif (args.exp is not None and not (args.preset or args.alphas or args.seeds or fixed)
-              and (args.exp / rundir.SWEEP_JSON).is_file()):
-            plan = sweep.plan_from_experiment(args.exp)
-        else:
-            plan = sweep.plan_from_args(args.preset or DEFAULT_PRESET, args.alphas, args.seeds, fixed)
-        if args.dry_run:
-            for r in plan.runs:
-                print(f"{r.name}  [{r.config_key}, seed {r.seed}]  {r.overrides}")
-            print(f"{len(plan.runs)} runs, preset {plan.preset}; nothing written (--dry-run)")
-            return 0
-        try:
-            res = sweep.run_sweep(plan, args.exp, backend=args.backend, workers=args.workers,
-                                  threads_per_run=args.threads_per_run, address=args.address,
-                                  gpus_per_run=args.gpus_per_run, tracking=args.tracking,
-                                  tracking_uri=args.tracking_uri, retries=args.retries,
-                                  progress=not args.no_progress, group_size=args.group_size,
-                                  env_workers=args.env_workers)
-        except KeyboardInterrupt:
-            print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' checkpoints",
-                  file=sys.stderr)
-            return 130
-        done = len(res.finished) + len(res.skipped)
-        print(f"experiment directory: {res.exp_dir} ({done} of {len(plan.runs)} runs finished)")
-        if res.tracking_uri:
-            from mcrl.sweep.tracking import ui_command
-
-            print(f"MLflow (experiment {res.tracking_experiment}): {ui_command(res.tracking_uri)}")
-        print(f"report: mcrl report {res.exp_dir}")
-        if res.failed:
-            print(f"mcrl: {len(res.failed)} run(s) failed ({', '.join(res.failed)}): fix the cause and re-run "
-                  f"`mcrl sweep --exp {res.exp_dir}` to resume them", file=sys.stderr)
-            return 1
-        return 0
-
-    p.set_defaults(func=run)
+        print(f"MLflow (experiment {res.tracking_experiment}): {ui_command(res.tracking_uri)}")
+    print(f"report: mcrl report {res.exp_dir}")
+    if res.failed:
+        print(f"mcrl: {len(res.failed)} run(s) failed ({', '.join(res.failed)}): fix the cause and re-run "
+              f"`mcrl sweep --exp {res.exp_dir}` to resume them", file=sys.stderr)
+        return 1
+    return 0
 
 
+def cmd_render(args) -> int:
+    require_all(RENDER_MODULES + (("imageio_ffmpeg",) if args.format == "mp4" else ()), None, "mcrl render")
+    from mcrl.video.render import render_run
 
-
-def _render(sub) -> None:
-    p = sub.add_parser("render", help="video of the saved policy with the MC reward timeline")
-    p.add_argument("run_dir")
-    p.add_argument("--episodes", type=int, default=1)
-    p.add_argument("--format", choices=("mp4", "gif"), default="mp4")
-    p.add_argument("--checkpoint", type=int, metavar="STEP", help="a checkpoint's step (default: the newest)")
-    p.add_argument("--out", help="video path (default RUN_DIR/videos/policy_step<STEP>.<format>)")
-    p.add_argument("--fps", type=float, default=25.0)
-
-    def run(args) -> int:
-        require_all(RENDER_MODULES + (("imageio_ffmpeg",) if args.format == "mp4" else ()), None, "mcrl render")
-        from mcrl.video.render import render_run
-
-        path = render_run(args.run_dir, episodes=args.episodes, fmt=args.format, checkpoint_step=args.checkpoint,
-                          out=args.out, fps=args.fps)
-        print(f"wrote {path}")
-        return 0
-
-    p.set_defaults(func=run)
+    path = render_run(args.run_dir, episodes=args.episodes, fmt=args.format, checkpoint_step=args.checkpoint,
+                      out=args.out, fps=args.fps)
+    print(f"wrote {path}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="mcrl", description="SAC-MC: reinforcement learning with morphological "
-                                "computation as an intrinsic reward")
-    sub = p.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(prog="mcrl", description="SAC-MC: reinforcement learning with morphological "
+                                     "computation as an intrinsic reward")
+    sub = parser.add_subparsers(dest="command", required=True)
 
     t = sub.add_parser("train", help="train SAC / SAC-MC (default preset: fetchreach-sacmc)")
     t.add_argument("--preset", help="a preset name (`mcrl presets`)")
@@ -331,9 +237,62 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--no-progress", action="store_true")
     m.set_defaults(func=cmd_measure)
 
-    for add in (_plot, _report, _sweep, _render):
-        add(sub)
-    return p
+    p = sub.add_parser("plot", help="learning curves of one run (PNG)")
+    p.add_argument("run_dir")
+    p.add_argument("--out", help="PNG path (default RUN_DIR/curves.png)")
+    p.set_defaults(func=cmd_plot)
+
+    p = sub.add_parser("report", help="statistical report of a sweep (Markdown + PNG, or HTML)")
+    p.add_argument("experiment_dir")
+    p.add_argument("--format", choices=("md", "html"), default="md")
+    p.add_argument("--out", help="output directory (default EXPERIMENT_DIR/report)")
+    p.add_argument("--with", dest="with_dirs", action="append", metavar="DIR[=LABEL]", default=[],
+                   help="more runs to include (repeatable): another experiment directory, a run directory, or a "
+                   "directory of run directories (directly or in its runs/), e.g. reference arms with a peer.json; "
+                   "=LABEL names its arm in the report (e.g. --with experiments/variant='SAC-MC, code variant')")
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser("sweep", help="many runs (alphas x seeds, or a grid file) into one experiment directory",
+                       description="Run a grid of configurations and seeds into one experiment directory "
+                       "(EXP/sweep.json + EXP/runs/<name>/). Re-running with the same --exp skips finished runs "
+                       "and resumes the others from their checkpoints; `mcrl sweep --exp EXP` alone continues "
+                       "the sweep recorded there.")
+    p.add_argument("--preset", help="a preset name (`mcrl presets`)")
+    p.add_argument("--alphas", help="comma-separated mc_alpha values, e.g. 0,0.2,0.4,0.6,0.8,1.0")
+    p.add_argument("--seeds", help="a count (6 = seeds 0..5) or a comma-separated list of seeds")
+    p.add_argument("--steps", type=int, help="total environment steps of every run")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override of a config key (repeatable)")
+    p.add_argument("--file", help="YAML sweep file: preset, grid: {key: [values]}, optional set: {key: value}, seeds")
+    p.add_argument("--exp", type=Path, help="experiment directory (default experiments/<preset>-<time>)")
+    p.add_argument("--backend", choices=("local", "ray", "vmap"), default="local",
+                   help="local: a process per run; ray: a Ray task per run; vmap: runs that share shapes train as "
+                   "one vmapped computation (one process per group, all cores; the fastest on a GPU)")
+    p.add_argument("--group-size", type=int, help="vmap: at most N runs per group (default: all that fit together)")
+    p.add_argument("--env-workers", type=int, default=0, help="vmap: step the group's environments in N processes "
+                   "(default 0: in the group's process)")
+    p.add_argument("--workers", type=int, help="runs at a time (default: the number of cores; ray with --address: "
+                   "as many as the cluster's CPUs allow)")
+    p.add_argument("--threads-per-run", type=int, help="threads of each run (default: cores // workers)")
+    p.add_argument("--address", help="Ray cluster address (HOST:PORT, ray://HOST:PORT or auto); default: a local "
+                   "Ray instance")
+    p.add_argument("--gpus-per-run", type=float, default=0.0, help="GPUs each Ray task asks for (ray only)")
+    p.add_argument("--retries", type=int, default=0, help="restart a run whose worker died, from its last "
+                   "checkpoint, up to N times")
+    p.add_argument("--tracking", action="store_true", help="log every run to MLflow (default store: EXP/mlflow.db)")
+    p.add_argument("--tracking-uri", help="MLflow tracking URI (implies --tracking), e.g. http://host:5000")
+    p.add_argument("--dry-run", action="store_true", help="validate and list the runs; write nothing")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (run lines are still printed)")
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("render", help="video of the saved policy with the MC reward timeline")
+    p.add_argument("run_dir")
+    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--format", choices=("mp4", "gif"), default="mp4")
+    p.add_argument("--checkpoint", type=int, metavar="STEP", help="a checkpoint's step (default: the newest)")
+    p.add_argument("--out", help="video path (default RUN_DIR/videos/policy_step<STEP>.<format>)")
+    p.add_argument("--fps", type=float, default=25.0)
+    p.set_defaults(func=cmd_render)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -101,9 +101,10 @@ class Config:
 
     @classmethod
     def from_run_json(cls, d: dict[str, Any]) -> "Config":
-        """A run directory's config.json; keys added since it was written take their defaults. One without
-        `init` was written by mcrl 0.1 (Flax's initialisation, `mc_history` in KL values): refused, not guessed."""
-        if "init" not in d:
+        """A run directory's config.json; keys added since it was written take their defaults. One that lists
+        `mc_history` but no `init` was written by mcrl 0.1 (Flax's initialisation, `mc_history` counted in KL
+        values, not gradient steps): refused, not guessed."""
+        if "init" not in d and "mc_history" in d:
             raise MCRLError("this config.json was written by mcrl 0.1 (it has no `init`): convert its run directory "
                             "with `python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
         return cls.from_dict(d)

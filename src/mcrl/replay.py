@@ -7,16 +7,28 @@ goal, the next achieved goal of a transition from the same episode chosen by the
 (`future`: this or a later step; `final`: the last step; `episode`: any step), and its reward is
 recomputed with the environment's own `compute_reward`, and its `terminated` flag with `compute_terminated`
 (for environments that end episodes on success). Only finished episodes are sampled when HER is on.
+
+A sample is a `Batch`, the gradient step's input (`mcrl.algo.sac.Agent.update`); no JAX here.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
 from mcrl.errors import MCRLError
 
 _ARRAYS = ("obs", "action", "reward", "next_obs", "terminated", "ep_first", "ep_last")
+
+
+class Batch(NamedTuple):
+    """Transitions for one gradient step (numpy from the buffer, device arrays inside the update)."""
+
+    obs: Any  # (B, obs_dim): observation | achieved_goal | desired_goal for goal envs
+    action: Any  # (B, act_dim) in [-1, 1]
+    reward: Any  # (B,) extrinsic (HER-recomputed) reward
+    next_obs: Any
+    terminated: Any  # (B,) 1.0 only for true terminations, never for time-limit truncations
 
 
 class ReplayBuffer:
@@ -70,15 +82,19 @@ class ReplayBuffer:
         lo, hi = self._sampleable()
         return hi > lo
 
-    def sample(self, batch_size: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    def relabelled(self, batch_size: int) -> np.ndarray:
+        """(batch_size,) bool: the rows of a `sample` that HER relabelled (the first k/(k+1) of them)."""
+        n_her = int(round(batch_size * self.k / (self.k + 1))) if self.her else 0
+        return np.arange(batch_size) < n_her
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
         lo, hi = self._sampleable()
         g = rng.integers(lo, hi, size=batch_size)
         idx = g % self.capacity
-        batch = {"obs": self.obs[idx], "action": self.action[idx], "reward": self.reward[idx],
-                 "next_obs": self.next_obs[idx], "terminated": self.terminated[idx]}
+        batch = Batch(self.obs[idx], self.action[idx], self.reward[idx], self.next_obs[idx], self.terminated[idx])
         if not self.her:
             return batch
-        n_her = int(round(batch_size * self.k / (self.k + 1)))
+        n_her = int(self.relabelled(batch_size).sum())
         first, last = self.ep_first[idx[:n_her]], self.ep_last[idx[:n_her]]
         first = np.maximum(first, lo)  # earlier steps of a partly overwritten episode are gone
         if self.strategy == "future":
@@ -88,14 +104,12 @@ class ReplayBuffer:
         else:  # episode
             goal_g = rng.integers(first, last + 1)
         goal = self.next_obs[goal_g % self.capacity, self.od:self.od + self.gd]
-        obs, next_obs = batch["obs"], batch["next_obs"]
-        obs[:n_her, self.od + self.gd:] = goal
-        next_obs[:n_her, self.od + self.gd:] = goal
-        achieved = next_obs[:n_her, self.od:self.od + self.gd]
-        batch["reward"][:n_her] = np.asarray(self.compute_reward(achieved, goal, {}), np.float32).reshape(-1)
+        batch.obs[:n_her, self.od + self.gd:] = goal
+        batch.next_obs[:n_her, self.od + self.gd:] = goal
+        achieved = batch.next_obs[:n_her, self.od:self.od + self.gd]
+        batch.reward[:n_her] = np.asarray(self.compute_reward(achieved, goal, {}), np.float32).reshape(-1)
         if self.compute_terminated is not None:
-            batch["terminated"][:n_her] = self.compute_terminated(achieved, goal)
-        batch["relabelled"] = np.arange(batch_size) < n_her
+            batch.terminated[:n_her] = self.compute_terminated(achieved, goal)
         return batch
 
     # ------------------------------------------------------------------ checkpointing

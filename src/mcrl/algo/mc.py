@@ -4,12 +4,14 @@ MC of a transition is KL( p(s'|s,a) || p(s'|a) ): how much the current state (th
 the next state beyond what the action alone tells. Both models are diagonal Gaussians, so the KL is
 closed-form. The same forward pass gives the models' NLL loss and the KL, so the agent pays for it once.
 
-Everything here is a pure function of arrays, used by the agent (`mcrl.algo.sac`) and by `mcrl measure`.
+Everything here is a pure function of arrays, used by the agent (`mcrl.algo.sac`) and by `mcrl measure`,
+except `load_transitions`, which reads and checks `measure`'s data file.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -18,6 +20,7 @@ import numpy as np
 import optax
 
 from mcrl.algo.networks import ActionModel, TransitionModel
+from mcrl.errors import MCRLError
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
@@ -90,8 +93,36 @@ def transition_kl(out: MCOutputs) -> jax.Array:
 
 
 # --------------------------------------------------------------------------------------------
-# MC as a measurement: fit both models to logged transitions and report the mean KL.
+# MC as a measurement: fit both models to logged transitions and report the mean KL (`mcrl measure`).
 # --------------------------------------------------------------------------------------------
+
+def load_transitions(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(states, actions, next_states) of a `measure` data file: an .npz with those three 2-d arrays, checked."""
+    p = Path(path)
+    if not p.is_file():
+        raise MCRLError(f"data file {path} not found: give an .npz with arrays states, actions, next_states")
+    try:
+        with np.load(p, allow_pickle=False) as f:
+            arrays = {k: f[k] for k in f.files}
+    except Exception as e:  # a corrupt or non-npz file
+        raise MCRLError(f"cannot read {path} as .npz ({type(e).__name__}): save it with numpy.savez") from None
+    missing = [k for k in ("states", "actions", "next_states") if k not in arrays]
+    if missing:
+        raise MCRLError(f"{path} lacks array(s) {missing}: it needs states (N, ds), actions (N, da), "
+                        "next_states (N, ds)")
+    s, a, s2 = (np.asarray(arrays[k]) for k in ("states", "actions", "next_states"))
+    if s.ndim != 2 or a.ndim != 2 or s2.ndim != 2:
+        raise MCRLError(f"{path}: states {s.shape}, actions {a.shape}, next_states {s2.shape} must all be 2-d "
+                        "(N, dim); reshape them")
+    if not (len(s) == len(a) == len(s2)) or s.shape[1] != s2.shape[1]:
+        raise MCRLError(f"{path}: states {s.shape}, actions {a.shape}, next_states {s2.shape} disagree: need the "
+                        "same N everywhere and next_states shaped like states")
+    if len(s) < 10:
+        raise MCRLError(f"{path} holds {len(s)} transitions: measuring MC needs at least 10 (thousands for accuracy)")
+    if not all(np.isfinite(x).all() for x in (s, a, s2)):
+        raise MCRLError(f"{path} contains NaN or inf values: clean the data first")
+    return s, a, s2
+
 
 @dataclass
 class MeasureResult:

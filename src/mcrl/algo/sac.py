@@ -1,13 +1,15 @@
 """SAC-MC: one gradient step as a pure function, jitted once.
 
-`Agent.update(state, batch) -> state` does, in one compiled call and in this order:
+`Agent.update(state, batch) -> (state, metrics)` does, in one compiled call and in this order:
   1. MC models' forward pass on the batch -> their NLL losses and the per-transition KL (one pass);
   2. the KL values go into the percentile normaliser, then are mapped into the MC reward range;
   3. reward = (1 - mc_alpha) * r_ext + mc_alpha * r_mc (exactly r_ext when mc_alpha == 0);
   4. critics (clipped double-Q target, polyak targets), actor, entropy coefficient — in the order of
      stable-baselines3 (entropy coefficient read before its own update);
   5. the MC models' Adam step (so the reward used step t's models before their update, like the thesis).
-Metrics are summed on the device and read by the host only at log intervals.
+`state` holds only what learns (parameters, optimiser states, targets, the normaliser's history, the key);
+`metrics` are the step's numbers by name, which the training loop adds up on the device in the same compiled
+call (`mcrl.algo.diagnostics`) and reads only at log intervals.
 
 `update(state, batch, hyper)` with a `Hyper` takes mc_alpha, gamma, tau and the learning rates as data
 instead of compile-time constants: `jax.vmap` of it trains a grid of runs as one computation
@@ -23,11 +25,12 @@ import jax.numpy as jnp
 import optax
 
 from mcrl.algo import normaliser
-from mcrl.config import Config
 from mcrl.algo.mc import MCModels, transition_kl
 from mcrl.algo.networks import GaussianHead, TwinCritic
+from mcrl.config import Config
+from mcrl.replay import Batch
 
-from mcrl.algo.metrics import MC_METRICS, UPDATE_METRICS as METRICS
+__all__ = ["Agent", "Batch", "Hyper", "Learned", "MCStep", "TrainState", "tanh_gaussian_sample"]
 
 
 class Learned(NamedTuple):
@@ -38,6 +41,8 @@ class Learned(NamedTuple):
 
 
 class TrainState(NamedTuple):
+    """What learns. A checkpoint's state.npz keys each leaf by its path: `.pi.params['MLP_0']...`, `.pi.opt[0]...`."""
+
     pi: Learned  # the actor
     q: Learned  # the twin critics
     q_target: Any  # polyak-averaged critic parameters
@@ -46,22 +51,6 @@ class TrainState(NamedTuple):
     norm: Any  # normaliser.NormaliserState, None without MC models
     key: jax.Array
     grad_steps: jax.Array
-    metric_sums: dict  # name -> float32 sum since the last read
-    metric_count: jax.Array
-    bounds: jax.Array  # (2,) last normaliser bounds
-
-    # the parameters alone, as acting, evaluation and videos need them
-    @property
-    def actor(self):
-        return self.pi.params
-
-    @property
-    def critic(self):
-        return self.q.params
-
-    @property
-    def mc(self):
-        return None if self.mc_models is None else self.mc_models.params
 
 
 class Hyper(NamedTuple):
@@ -78,12 +67,16 @@ class Hyper(NamedTuple):
         return cls(cfg.mc_alpha, cfg.gamma, cfg.tau, cfg.learning_rate, cfg.mc_lr)
 
 
-class Batch(NamedTuple):
-    obs: jax.Array  # (B, obs_dim): observation | achieved_goal | desired_goal for goal envs
-    action: jax.Array  # (B, act_dim) in [-1, 1]
-    reward: jax.Array  # (B,) extrinsic (HER-recomputed) reward
-    next_obs: jax.Array
-    terminated: jax.Array  # (B,) 1.0 only for true terminations, never for time-limit truncations
+class MCStep(NamedTuple):
+    """The MC part of one gradient step (`Agent.mc_reward`)."""
+
+    reward: jax.Array  # (B,) MC reward of each transition, in [mc_reward_low, mc_reward_high]
+    kl: jax.Array  # (B,) raw KL in nats (the batch mean everywhere with mc_reduction=batch)
+    norm: Any  # the normaliser's history with this step's values pushed
+    bounds: jax.Array  # (2,) the history's percentile bounds the reward was scaled with
+    grads: Any  # of both models' NLL
+    transition_loss: jax.Array
+    action_loss: jax.Array
 
 
 def tanh_gaussian_sample(mean, log_std, key):
@@ -113,7 +106,7 @@ class Agent:
         return TwinCritic(self.cfg.hidden_sizes, self.cfg.init, self.cfg.matmul_precision)
 
     @property
-    def mc_models(self) -> MCModels:
+    def mc_net(self) -> MCModels:
         return MCModels(state_dim=self.mc_dim, hidden=self.cfg.mc_hidden_sizes, init_scheme=self.cfg.init,
                         matmul_precision=self.cfg.matmul_precision)
 
@@ -133,15 +126,13 @@ class Agent:
         log_ent = jnp.log(jnp.float32(self.cfg.ent_coef_init))
         mc_models = norm = None
         if self.cfg.use_mc_models:
-            mc = self.mc_models.init(k_mc, self.act_dim)
+            mc = self.mc_net.init(k_mc, self.act_dim)
             mc_models = Learned(mc, self._opt(self.cfg.mc_lr).init(mc))
             norm = normaliser.init(self.cfg.mc_history_values)
         lr = self.cfg.learning_rate
         return TrainState(pi=Learned(actor, self._opt(lr).init(actor)), q=Learned(critic, self._opt(lr).init(critic)),
                           q_target=jax.tree.map(jnp.copy, critic), ent=Learned(log_ent, self._opt(lr).init(log_ent)),
-                          mc_models=mc_models, norm=norm, key=k_state,
-                          grad_steps=jnp.int32(0), metric_sums={m: jnp.float32(0) for m in METRICS},
-                          metric_count=jnp.int32(0), bounds=jnp.zeros(2, jnp.float32))
+                          mc_models=mc_models, norm=norm, key=k_state, grad_steps=jnp.int32(0))
 
     # ------------------------------------------------------------------ acting
     def act(self, actor_params, obs, key):
@@ -152,12 +143,12 @@ class Agent:
         return jnp.tanh(self.actor_net.apply({"params": actor_params}, obs)[0])
 
     # ------------------------------------------------------------------ the MC reward
-    def mc_reward(self, state: TrainState, batch: Batch):
+    def mc_reward(self, state: TrainState, batch: Batch) -> MCStep:
         """MC losses/grads, raw KL, updated normaliser and the scaled MC reward of every transition."""
         cfg = self.cfg
         s, s_next = batch.obs[:, : self.mc_dim], batch.next_obs[:, : self.mc_dim]
-        (_, (out, lt, la)), grads = jax.value_and_grad(self.mc_models.loss, has_aux=True)(
-            state.mc, s, batch.action, s_next)
+        (_, (out, lt, la)), grads = jax.value_and_grad(self.mc_net.loss, has_aux=True)(
+            state.mc_models.params, s, batch.action, s_next)
         kl = transition_kl(out)
         if cfg.mc_reduction == "batch":  # the thesis' code: one batch-mean value for every transition
             kl = jnp.broadcast_to(kl.mean(), kl.shape)
@@ -166,35 +157,38 @@ class Agent:
             norm = normaliser.push(state.norm, kl)
         r_mc, (lo, hi) = normaliser.mc_reward(norm, kl, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
                                               cfg.mc_reward_high)
-        return r_mc, kl, norm, jnp.stack([lo, hi]), grads, lt, la
+        return MCStep(r_mc, kl, norm, jnp.stack([lo, hi]), grads, lt, la)
 
     # ------------------------------------------------------------------ one gradient step
     def _adam(self, learned: Learned, grads, lr: float) -> Learned:
         upd, opt = self._opt(lr).update(grads, learned.opt, learned.params)
         return Learned(optax.apply_updates(learned.params, upd), opt)
 
-    def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None) -> TrainState:
+    def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None) -> tuple[TrainState, dict]:
+        """One gradient step: the new state, and the step's metrics by name (`mcrl.algo.metrics`; the MC ones
+        and the normaliser's bounds, `mc_bound_low` / `mc_bound_high`, only with MC models)."""
         cfg = self.cfg
         h = Hyper.of(cfg) if hyper is None else hyper
         key, k_pi, k_next = jax.random.split(state.key, 3)
         m: dict[str, jax.Array] = {}
 
         reward = batch.reward
-        mc_models, norm, bounds = state.mc_models, state.norm, state.bounds
+        mc_models, norm = state.mc_models, state.norm
         if cfg.use_mc_models:
-            r_mc, kl, norm, bounds, mc_grads, lt, la = self.mc_reward(state, batch)
+            mc = self.mc_reward(state, batch)
             if hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
-                reward = jnp.where(h.mc_alpha > 0, (1.0 - h.mc_alpha) * batch.reward + h.mc_alpha * r_mc, reward)
+                reward = jnp.where(h.mc_alpha > 0, (1.0 - h.mc_alpha) * batch.reward + h.mc_alpha * mc.reward, reward)
             elif cfg.mc_alpha > 0:
-                reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * r_mc
-            mc_models = self._adam(state.mc_models, mc_grads, h.mc_lr)
-            m.update(transition_model_loss=lt, action_model_loss=la, mean_mc_reward=r_mc.mean(),
-                     mean_raw_kl=kl.mean())
+                reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * mc.reward
+            mc_models, norm = self._adam(state.mc_models, mc.grads, h.mc_lr), mc.norm
+            m.update(transition_model_loss=mc.transition_loss, action_model_loss=mc.action_loss,
+                     mean_mc_reward=mc.reward.mean(), mean_raw_kl=mc.kl.mean(), mc_bound_low=mc.bounds[0],
+                     mc_bound_high=mc.bounds[1])
 
         ent_coef = jnp.exp(state.ent.params)
 
         # critics
-        mean_n, log_std_n = self.actor_net.apply({"params": state.actor}, batch.next_obs)
+        mean_n, log_std_n = self.actor_net.apply({"params": state.pi.params}, batch.next_obs)
         a_next, logp_next = tanh_gaussian_sample(mean_n, log_std_n, k_next)
         q_next = self.critic_net.apply({"params": state.q_target}, batch.next_obs, a_next).min(0)
         target = reward + (1.0 - batch.terminated) * h.gamma * (q_next - ent_coef * logp_next)
@@ -204,7 +198,7 @@ class Agent:
             q = self.critic_net.apply({"params": params}, batch.obs, batch.action)
             return 0.5 * jnp.square(q - target[None]).mean(-1).sum(), q.mean()
 
-        (critic_loss, q_mean), g = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.critic)
+        (critic_loss, q_mean), g = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.q.params)
         q = self._adam(state.q, g, h.learning_rate)
 
         # actor (against the updated critics, as stable-baselines3 does)
@@ -214,7 +208,7 @@ class Agent:
             q_pi = self.critic_net.apply({"params": q.params}, batch.obs, a_pi).min(0)
             return (ent_coef * logp - q_pi).mean(), logp
 
-        (actor_loss, logp), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.actor)
+        (actor_loss, logp), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.pi.params)
         pi = self._adam(state.pi, g, h.learning_rate)
 
         # entropy coefficient, from the same (pre-update) policy sample
@@ -226,25 +220,5 @@ class Agent:
 
         m.update(actor_loss=actor_loss, critic_loss=critic_loss, ent_coef=ent_coef, ent_coef_loss=ent_loss,
                  q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean())
-        sums = {k: state.metric_sums[k] + m.get(k, 0.0) for k in METRICS}
         return TrainState(pi=pi, q=q, q_target=q_target, ent=ent, mc_models=mc_models, norm=norm, key=key,
-                          grad_steps=state.grad_steps + 1, metric_sums=sums, metric_count=state.metric_count + 1,
-                          bounds=bounds)
-
-    def read_metrics(self, state: TrainState) -> tuple[dict[str, float], TrainState]:
-        """Means since the last read (host side), and the state with the sums reset."""
-        n = int(state.metric_count)
-        if n == 0:
-            return {}, state
-        out = metric_means(jax.device_get(state.metric_sums), n, jax.device_get(state.bounds),
-                           self.cfg.use_mc_models)
-        reset = {k: jnp.float32(0) for k in METRICS}
-        return out, state._replace(metric_sums=reset, metric_count=jnp.int32(0))
-
-
-def metric_means(sums: dict, count: int, bounds, with_mc: bool) -> dict[str, float]:
-    """The log row's means from the device sums of `count` gradient steps (MC metrics only `with_mc`)."""
-    out = {k: float(v) / count for k, v in sums.items() if with_mc or k not in MC_METRICS}
-    if with_mc:
-        out["mc_bound_low"], out["mc_bound_high"] = float(bounds[0]), float(bounds[1])
-    return out
+                          grad_steps=state.grad_steps + 1), m

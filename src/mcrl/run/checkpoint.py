@@ -1,12 +1,14 @@
 """Checkpoints: plain .npz arrays plus JSON, never pickle, written atomically.
 
-A checkpoint is a directory `checkpoints/step_<N>/` holding `state.npz` (every leaf of the train
-state, keyed by its pytree path), `normaliser.npz` (the MC normaliser's history, packed), `buffer.npz`
-(the replay buffer, optional) and `meta.json` (step counters, the host RNG state, the config). Every
-file is fsynced; the directory is written under a temporary name and renamed into place, then
-`checkpoints/latest` is replaced atomically. `find` falls back to the newest complete checkpoint when
-`latest` is missing or dangling, so a kill at any moment leaves an older checkpoint usable. Loading uses
-`numpy.load(allow_pickle=False)`: it runs no code.
+A checkpoint is a directory `checkpoints/step_<N>/` holding `state.npz` (every leaf of the learner's state
+and of its diagnostics, keyed by its pytree path: `flatten`), `normaliser.npz` (the MC normaliser's history,
+packed), `buffer.npz` (the replay buffer, optional) and `meta.json` (step counters, the host RNG state, the
+config). `install` is the one way a checkpoint comes into being, whoever wrote its files (a run, or the sweep
+driver receiving a remote run's): every file fsynced in a temporary directory, renamed into place, then
+`checkpoints/latest` replaced atomically and the oldest pruned. `find` falls back to the newest complete
+checkpoint when `latest` is missing or dangling, so a kill at any moment leaves an older checkpoint usable.
+Loading uses `numpy.load(allow_pickle=False)`: it runs no code. JAX is imported only by the functions that
+handle pytrees, so the sweep driver installs checkpoints without it.
 """
 from __future__ import annotations
 
@@ -15,9 +17,8 @@ import os
 import shutil
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
-import jax
 import numpy as np
 
 from mcrl.errors import MCRLError
@@ -27,9 +28,12 @@ _COMPLETE = ("state.npz", "meta.json")  # a checkpoint directory without these i
 _OLD_FORMAT = (".actor", ".norm.")  # keys of checkpoints by mcrl 0.1 and commit 83e6d8d (flat layout)
 
 
-def _flatten(tree) -> dict[str, np.ndarray]:
+def flatten(tree) -> dict[str, np.ndarray]:
+    """The leaves of a pytree as host arrays keyed by their paths (`.pi.params['MLP_0']...`): state.npz's keys."""
+    import jax
+
     return {jax.tree_util.keystr(path): np.asarray(leaf)
-            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+            for path, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]}
 
 
 def _fsync_dir(path: Path) -> None:
@@ -40,35 +44,20 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def _write_text(path: Path, text: str) -> None:
-    with open(path, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: dict | None, keep: int,
-         extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
-    """Write `state` (a pytree), `extra` arrays (one `<name>.npz` each), the buffer and `meta` as step `step`."""
+def install(run_dir: Path, step: int, write: Callable[[Path], None], keep: int) -> Path:
+    """Make checkpoint `step` of `run_dir` from the files `write(directory)` puts into an empty directory: each
+    fsynced, the directory renamed into place (one of the same step moved aside first and dropped after),
+    `latest` pointed at it, all but the newest `keep` checkpoints removed."""
     ckpt_root = rundir.checkpoint_root(run_dir)
     ckpt_root.mkdir(parents=True, exist_ok=True)
     final = ckpt_root / rundir.checkpoint_name(step)
     tmp = ckpt_root / f".tmp-{final.name}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    _write_npz(tmp / "state.npz", _flatten(jax.device_get(state)))
-    for name, arrays in (extra or {}).items():
-        _write_npz(tmp / f"{name}.npz", arrays)
-    if buffer_arrays is not None:
-        _write_npz(tmp / "buffer.npz", buffer_arrays)
-    _write_text(tmp / "meta.json", json.dumps({**meta, "step": step, "has_buffer": buffer_arrays is not None}))
+    write(tmp)
+    for p in tmp.iterdir():
+        with open(p, "rb+") as f:
+            os.fsync(f.fileno())
     _fsync_dir(tmp)
     if final.exists():  # the same step saved again (a resumed run): move the old one aside, drop it after
         old = ckpt_root / f".old-{final.name}"
@@ -80,9 +69,24 @@ def save(run_dir: Path, step: int, state, meta: dict[str, Any], buffer_arrays: d
         os.rename(tmp, final)
     rundir.write_latest(run_dir, final.name)
     _fsync_dir(ckpt_root)
-    for old in sorted(ckpt_root.glob("step_*"))[:-keep]:
+    for old in sorted(ckpt_root.glob("step_*"))[:-max(1, keep)]:
         shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def save(run_dir: Path, step: int, arrays: dict[str, np.ndarray], meta: dict[str, Any], buffer_arrays: dict | None,
+         keep: int, extra: dict[str, dict[str, np.ndarray]] | None = None) -> Path:
+    """Install step `step`: `arrays` (`flatten`ed pytrees) as state.npz, `extra` arrays (one `<name>.npz`
+    each), the buffer and `meta`."""
+    def write(d: Path) -> None:
+        np.savez(d / "state.npz", **arrays)
+        for name, more in (extra or {}).items():
+            np.savez(d / f"{name}.npz", **more)
+        if buffer_arrays is not None:
+            np.savez(d / "buffer.npz", **buffer_arrays)
+        (d / "meta.json").write_text(json.dumps({**meta, "step": step, "has_buffer": buffer_arrays is not None}))
+
+    return install(run_dir, step, write, keep)
 
 
 def find(run_dir: Path, step: int | None = None) -> Path:
@@ -125,28 +129,40 @@ def load_meta(ckpt: Path) -> dict[str, Any]:
                         "is corrupt; delete it to fall back to an older one") from None
 
 
-def restore_state(ckpt: Path, template):
-    """Fill `template` (a freshly initialised state of the same config) with the checkpoint's arrays."""
+def restore_state(ckpt: Path, template, optional=None):
+    """(template, optional) filled with the checkpoint's arrays, each a freshly initialised pytree of the run's
+    config: every leaf of `template` must be there; a leaf of `optional` that is not keeps its initial value."""
+    import jax
+
     arrays = _load_npz(ckpt / "state.npz")
     if any(k.startswith(_OLD_FORMAT) for k in arrays):
         raise MCRLError(f"checkpoint {ckpt} was written by an older mcrl (0.1 or commit 83e6d8d): convert it with "
                         "`python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
-    leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
-    new_leaves = []
-    for path, leaf in leaves:
-        key = jax.tree_util.keystr(path)
-        if key not in arrays:
-            raise MCRLError(f"checkpoint {ckpt} lacks {key}: it was written by a different config "
-                            "(e.g. with/without MC models); resume with the run's own config.json")
-        a = arrays.pop(key)
-        if a.shape != np.shape(leaf) or a.dtype != np.asarray(leaf).dtype:
-            raise MCRLError(f"checkpoint {ckpt}: {key} has shape {a.shape} {a.dtype}, expected "
-                            f"{np.shape(leaf)} {np.asarray(leaf).dtype}: the network sizes differ from the config")
-        new_leaves.append(a)
+
+    def fill(tree, required: bool):
+        leaves, treedef = jax.tree_util.tree_flatten_with_path(tree)
+        new_leaves = []
+        for path, leaf in leaves:
+            key = jax.tree_util.keystr(path)
+            if key not in arrays:
+                if not required:
+                    new_leaves.append(leaf)
+                    continue
+                raise MCRLError(f"checkpoint {ckpt} lacks {key}: it was written by a different config "
+                                "(e.g. with/without MC models); resume with the run's own config.json")
+            a = arrays.pop(key)
+            if a.shape != np.shape(leaf) or a.dtype != np.asarray(leaf).dtype:
+                raise MCRLError(f"checkpoint {ckpt}: {key} has shape {a.shape} {a.dtype}, expected {np.shape(leaf)} "
+                                f"{np.asarray(leaf).dtype}: the network sizes differ from the config")
+            new_leaves.append(jax.numpy.asarray(a))
+        return jax.tree_util.tree_unflatten(treedef, new_leaves)
+
+    state = fill(template, True)
+    extra = fill(optional, False) if optional is not None else None
     if arrays:
         raise MCRLError(f"checkpoint {ckpt} has arrays this config does not ({sorted(arrays)[:3]}...): "
                         "resume with the run's own config.json")
-    return jax.tree_util.tree_unflatten(treedef, [jax.numpy.asarray(x) for x in new_leaves])
+    return state, extra
 
 
 def load_extra(ckpt: Path, name: str) -> dict[str, np.ndarray] | None:

@@ -1,4 +1,5 @@
-"""The environments of a group of runs (`mcrl.run.group`), stepped together.
+"""The environments of the training loop's runs (`mcrl.run.trainer`), stepped together: one for a single run,
+several for a group (`mcrl.run.group`).
 
 One environment per run, each made from its run's config and reset with its run's episode seeds, so a run
 sees the same episodes in a group as alone. With ``workers=0`` they step in this process one after another

@@ -69,6 +69,6 @@ def evaluate_run(run_dir: Path | str, episodes: int | None = None, checkpoint: i
     cfg, agent, state = load_policy(run_dir, checkpoint)
     ev = Evaluator(cfg, agent)
     try:
-        return ev.run(state.actor, FRESH_ROUND, episodes or cfg.eval_episodes)
+        return ev.run(state.pi.params, FRESH_ROUND, episodes or cfg.eval_episodes)
     finally:
         ev.close()

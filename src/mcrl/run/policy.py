@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mcrl.algo import normaliser
+from mcrl.algo import diagnostics, normaliser
+from mcrl.algo.diagnostics import Diagnostics
 from mcrl.algo.sac import Agent, TrainState
 from mcrl.config import Config
 from mcrl.envs import EnvSpec, goal_terminated_fn, inspect, make_env
@@ -35,10 +36,17 @@ def agent_for(cfg: Config) -> tuple[Agent, EnvSpec]:
 
 
 def restore(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, dict]:
-    """The train state and meta.json of checkpoint `ckpt` (its normaliser from normaliser.npz)."""
+    """The learner state and meta.json of checkpoint `ckpt` (what evaluating or rendering it needs)."""
+    state, _, meta = restore_run(cfg, agent, ckpt)
+    return state, meta
+
+
+def restore_run(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, Diagnostics, dict]:
+    """The learner state, the diagnostics of the log interval in progress and meta.json of checkpoint `ckpt`
+    (its normaliser from normaliser.npz; diagnostics start at zero where the checkpoint has none)."""
     meta = checkpoint.load_meta(ckpt)
     template = agent.init(cfg.seed)
-    state = checkpoint.restore_state(ckpt, template._replace(norm=None))
+    state, diag = checkpoint.restore_state(ckpt, template._replace(norm=None), diagnostics.init())
     if template.norm is not None:
         packed = checkpoint.load_extra(ckpt, "normaliser")
         if packed is None:
@@ -50,7 +58,7 @@ def restore(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, dict]:
             raise MCRLError(f"checkpoint {ckpt}: its normaliser does not fit this config ({e}): resume with "
                             "the run's own config.json") from None
         state = state._replace(norm=norm)
-    return state, meta
+    return state, diag, meta
 
 
 def load_policy(run_dir: Path | str, checkpoint_step: int | None = None):

@@ -173,6 +173,12 @@ def checkpoint_name(step: int) -> str:
     return f"step_{step:09d}"
 
 
+def checkpoint_step(name: str) -> int | None:
+    """The step of a checkpoint directory's name (`checkpoint_name`'s inverse); None for any other name."""
+    digits = name[len("step_"):]
+    return int(digits) if name.startswith("step_") and digits.isascii() and digits.isdigit() else None
+
+
 def latest_checkpoint(run_dir: str | Path) -> str | None:
     """The name the `latest` pointer holds, or None (the pointer may dangle: see checkpoint.find)."""
     p = checkpoint_root(run_dir) / LATEST

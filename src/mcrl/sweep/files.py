@@ -4,17 +4,16 @@ in transit.
 A Ray worker that cannot see ``EXP`` (no shared filesystem) trains in a temporary directory and sends
 the run's files to the driver (``collect_run_files``), which writes them into ``EXP/runs/<name>/``
 the way the trainer would (``write_run_files``), so that a resumed or reported run cannot tell the
-difference. File names and the ``latest`` pointer are ``mcrl.run.rundir``'s.
+difference. File names are ``mcrl.run.rundir``'s; a checkpoint is installed by ``mcrl.run.checkpoint.install``,
+as a run installs its own.
 """
 from __future__ import annotations
 
 import os
-import re
-import shutil
 from pathlib import Path
 
 from mcrl.errors import MCRLError
-from mcrl.run import rundir
+from mcrl.run import checkpoint, rundir
 
 RUNS = rundir.RUNS
 _LATEST_KEY = f"{rundir.CHECKPOINTS}/{rundir.LATEST}"  # the `latest` pointer among the shipped files
@@ -33,8 +32,7 @@ def run_status(run_dir: Path) -> tuple[str, int]:
             return "finished", 0
     latest = rundir.latest_checkpoint(run_dir)
     if latest is not None:
-        m = re.search(r"(\d+)", latest)
-        return "checkpoint", int(m.group(1)) if m else 0
+        return "checkpoint", rundir.checkpoint_step(latest) or 0
     return "new", 0
 
 
@@ -90,23 +88,13 @@ def collect_run_files(run_dir: Path, final: bool) -> dict[str, bytes]:
 
 
 def write_run_files(run_dir: Path, files: dict[str, bytes], keep: int) -> None:
-    """Write files sent by a worker into `run_dir` the way the trainer would: the checkpoint directory
-    complete before `latest` names it, each file replaced atomically, `done` last."""
+    """Write files sent by a worker into `run_dir` the way the trainer would: the other files first, then the
+    checkpoint installed (so `latest` never names a step the CSVs have not reached), `done` last."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    ck_root = rundir.checkpoint_root(run_dir)
     ck_name = files.get(_LATEST_KEY, b"").decode().strip()
-    if ck_name:
-        if not re.fullmatch(r"step_\d+", ck_name):  # the shape of rundir.checkpoint_name
-            raise MCRLError(f"a worker sent a checkpoint named {ck_name!r}: not a checkpoint directory")
-        final = ck_root / ck_name
-        if not final.is_dir():
-            tmp = ck_root / f".tmp-{ck_name}"
-            shutil.rmtree(tmp, ignore_errors=True)
-            tmp.mkdir(parents=True)
-            for rel, data in files.items():
-                if rel.startswith(f"{rundir.CHECKPOINTS}/{ck_name}/"):
-                    (tmp / rel.rsplit("/", 1)[1]).write_bytes(data)
-            os.rename(tmp, final)
+    step = rundir.checkpoint_step(ck_name) if ck_name else None
+    if ck_name and step is None:
+        raise MCRLError(f"a worker sent a checkpoint named {ck_name!r}: not a checkpoint directory")
     for rel, data in files.items():
         if rel.startswith(f"{rundir.CHECKPOINTS}/") or rel == rundir.DONE:
             continue
@@ -117,9 +105,16 @@ def write_run_files(run_dir: Path, files: dict[str, bytes], keep: int) -> None:
         tmp = target.with_name(f".{target.name}.part")
         tmp.write_bytes(data)
         os.replace(tmp, target)
-    if ck_name:
-        rundir.write_latest(run_dir, ck_name)
-        for old in sorted(ck_root.glob("step_*"))[:-max(1, keep)]:
-            shutil.rmtree(old, ignore_errors=True)
+    if step is not None and (rundir.checkpoint_root(run_dir) / ck_name).is_dir():
+        rundir.write_latest(run_dir, ck_name)  # sent before: installed already
+    elif step is not None:
+        prefix = f"{rundir.CHECKPOINTS}/{ck_name}/"
+
+        def write(d: Path) -> None:
+            for rel, data in files.items():
+                if rel.startswith(prefix):
+                    (d / Path(rel).name).write_bytes(data)
+
+        checkpoint.install(run_dir, step, write, keep)
     if rundir.DONE in files:  # last: a run with `done` is finished, whoever reads it
         (run_dir / rundir.DONE).write_bytes(files[rundir.DONE])

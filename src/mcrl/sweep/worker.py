@@ -59,9 +59,10 @@ def patched_environ(env: dict[str, str]):
 def train_one(config: dict[str, Any], run_dir: str | Path) -> dict[str, Any]:
     """Train (or resume) one run in this process; returns the `done` summary."""
     from mcrl.run import trainer  # imports jax: only after the thread limits are set
+    from mcrl.video.render import record_training_video
 
     cfg = Config.from_dict(config)
-    out = trainer.train(cfg, Path(run_dir), progress=False, resume=True)
+    out = trainer.train(cfg, Path(run_dir), progress=False, resume=True, video=record_training_video)
     return rundir.read_json(Path(out) / rundir.DONE)
 
 
@@ -69,8 +70,10 @@ def train_group_runs(runs: list[dict[str, Any]], env_workers: int = 0) -> dict[s
     """Train (or resume) `runs` ({name, config, run_dir}) as one vmapped group in this process; their `done`
     summaries by name."""
     from mcrl.run.group import train_group  # imports jax: only after the thread limits are set
+    from mcrl.video.render import record_training_video
 
-    dirs = train_group([Config.from_dict(r["config"]) for r in runs], [r["run_dir"] for r in runs], env_workers)
+    dirs = train_group([Config.from_dict(r["config"]) for r in runs], [r["run_dir"] for r in runs], env_workers,
+                       video=record_training_video)
     return {r["name"]: rundir.read_json(Path(d) / rundir.DONE) for r, d in zip(runs, dirs)}
 
 

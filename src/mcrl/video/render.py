@@ -42,10 +42,10 @@ def mc_timeline(cfg: Config, agent: Agent, state: TrainState, flat_obs: np.ndarr
     (None, None) for a run without MC models. The history is not updated: the reward is the one the
     agent would give these transitions now.
     """
-    if state.mc is None:
+    if state.mc_models is None:
         return None, None
     s = jnp.asarray(flat_obs[:-1, : agent.mc_dim])  # the KL needs the predictions only, not the observed s'
-    kl = transition_kl(agent.mc_models.forward(state.mc, s, jnp.asarray(actions)))
+    kl = transition_kl(agent.mc_net.forward(state.mc_models.params, s, jnp.asarray(actions)))
     r_mc, _ = normaliser.mc_reward(state.norm, kl, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
                                    cfg.mc_reward_high)
     return np.asarray(kl, np.float64), np.asarray(r_mc, np.float64)
@@ -61,7 +61,7 @@ def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int,
     policy_actions: list[np.ndarray] = []
 
     def policy(obs):
-        a = np.asarray(act(state.actor, flatten_obs(obs)[None]))[0]
+        a = np.asarray(act(state.pi.params, flatten_obs(obs)[None]))[0]
         policy_actions.append(a)
         return to_env_action(a, env, cfg.action_scale)
 
@@ -114,7 +114,8 @@ def render_run(run_dir: Path | str, episodes: int = 1, fmt: str = "mp4", checkpo
 
 
 def record_training_video(cfg: Config, agent: Agent, state: TrainState, run_dir: Path, step: int, log) -> Path:
-    """Called at evaluation time with `video_every`: keep the video in the run and send it to TensorBoard.
+    """The training loop's video step (`mcrl.run.trainer.train(..., video=record_training_video)`), called at an
+    evaluation that `video_every` selects: keep the video in the run and send it to TensorBoard.
 
     `log` is the run's `mcrl.run.logger.RunLogger`; TensorBoard gets the episode as an animated GIF.
     """
