@@ -215,6 +215,81 @@ def test_killed_worker_and_killed_sweep_resume_to_the_same_numbers(local_exp, tm
         _same_run(ref / "runs" / name, exp / "runs" / name)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_sigterm_saves_the_runs_of_a_sweep_and_the_rerun_is_exact(local_exp, tmp_path):
+    """SIGTERM to the driver alone (what `timeout`, a scheduler or `docker stop` send): it starts no more runs, each
+    running run saves at its episode's end, the sweep exits 143; the same command resumes them exactly."""
+    ref, _ = local_exp
+    exp = tmp_path / "stopped"
+    args = _sweep_args(exp, "0.2", "2", "--workers", "2")
+    proc = subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    out = _Lines(proc)
+    try:
+        _wait_for(lambda: all(_logged(exp / "runs" / n) >= 100 for n in ("a0.2-s0", "a0.2-s1")), proc,
+                  "both runs past step 100", timeout=600)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 143, out.text()
+    stopped = [n for n in ("a0.2-s0", "a0.2-s1") if not (exp / "runs" / n / "done").exists()]
+    assert stopped, out.text()  # (a run may finish before the signal reaches it, not both)
+    for name in stopped:
+        run = exp / "runs" / name
+        step = int((run / "checkpoints" / "latest").read_text().strip().split("_")[1])
+        assert f"stopped {name} at step {step:,}, checkpoint saved" in out.text(), out.text()
+    assert "`mcrl sweep --exp" in out.text() and "resumes them exactly" in out.text()
+
+    res = _run_cli(args)
+    assert res.returncode == 0, res.stdout + res.stderr
+    for name in ("a0.2-s0", "a0.2-s1"):
+        _same_run(ref / "runs" / name, exp / "runs" / name)
+
+
+def _logged(run) -> int:
+    try:
+        lines = (run / "metrics.csv").read_text().strip().splitlines()
+    except OSError:
+        return 0
+    return int(float(lines[-1].split(",")[0])) if len(lines) > 1 else 0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1200)  # two Ray start-ups and 2 + 1 runs: ~4 min on a quiet 2-core machine
+def test_a_killed_ray_worker_resumes_to_the_same_numbers(local_exp, tmp_path):
+    """kill -9 a Ray worker after its run's first checkpoint: the driver reports the run failed and finishes the
+    other; the same command again resumes the killed run from its checkpoint, with the uninterrupted numbers."""
+    ref, _ = local_exp
+    exp = tmp_path / "ray-killed"
+    args = _sweep_args(exp, "0.2", "2", "--backend", "ray", "--workers", "2")  # a0.2-s0 and a0.2-s1, as in ref
+    proc = subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    out = _Lines(proc)
+    try:
+        _wait_for(lambda: list(exp.glob("runs/*/checkpoints/latest")), proc, "a first checkpoint", timeout=600)
+        victim = next(exp.glob("runs/*/checkpoints/latest")).parent.parent.name
+        start_line = re.compile(rf"start {re.escape(victim)} \(pid (\d+) on ")
+        _wait_for(lambda: start_line.search(out.text()), proc, "the victim's start line")
+        os.kill(int(start_line.search(out.text()).group(1)), signal.SIGKILL)  # the Ray worker process
+        proc.wait(600)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 1 and f"FAILED {victim}" in out.text(), out.text()
+    assert not (exp / "runs" / victim / "done").exists()
+
+    res = _run_cli(args, timeout=600)  # the same command again
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert re.search(rf"queued {re.escape(victim)} \(resumes from step [1-9]\d*\)", res.stdout), res.stdout
+    for name in ("a0.2-s0", "a0.2-s1"):
+        _same_run(ref / "runs" / name, exp / "runs" / name)
+
+
 def _closed_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

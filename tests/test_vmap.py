@@ -77,6 +77,35 @@ def test_group_matches_runs_trained_alone(tmp_path):
     assert read_rows(group_dirs[1] / "metrics.csv")[-1]["mean_raw_kl"] > 0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["rnd", "icm", "disagreement"])
+def test_group_with_another_intrinsic_reward_matches_runs_alone(tmp_path, kind):
+    """A SAC run (carrying the reward's models as ballast) and a run with RND, ICM or Disagreement at weight 0.4:
+    each run's whole state (the models' trained and untrained parts included) and its log rows match the run
+    trained alone; the SAC run's files are a SAC run's."""
+    over = dict(SMALL, total_steps=130, learning_starts=100, eval_every=65, eval_episodes=2, intrinsic=kind)
+    cfgs = [resolve_config("fetchreach-sac", {**over, "seed": 0}),
+            resolve_config("fetchreach-sac", {**over, "seed": 1, "mc_alpha": 0.4})]
+    group_dirs = train_group(cfgs, [tmp_path / f"g{i}" for i in range(2)])
+    for i, cfg in enumerate(cfgs):
+        alone = train(cfg, tmp_path / f"alone{i}", progress=False)
+        _assert_same_state(group_dirs[i], alone, rtol=1e-5)
+        g_rows, a_rows = read_rows(group_dirs[i] / "metrics.csv"), read_rows(alone / "metrics.csv")
+        assert [r["step"] for r in g_rows] == [r["step"] for r in a_rows] and len(g_rows) == 13
+        for g, a in zip(g_rows, a_rows):
+            for k in ("q_mean", "critic_loss", "mean_total_reward", "mean_mc_reward", "intrinsic_loss",
+                      "mean_raw_intrinsic"):
+                assert (g[k] is None) == (a[k] is None), k
+                if g[k] is not None:
+                    assert g[k] == pytest.approx(a[k], rel=1e-4, abs=1e-5), (k, g["step"])
+        assert read_rows(group_dirs[i] / "eval.csv") == read_rows(alone / "eval.csv")
+    _, _, sac_state = load_policy(group_dirs[0])
+    _, _, own_state = load_policy(group_dirs[1])
+    assert sac_state.intrinsic is None and sac_state.norm is None and own_state.intrinsic is not None
+    assert read_rows(group_dirs[0] / "metrics.csv")[-1]["mean_raw_intrinsic"] is None
+    assert read_rows(group_dirs[1] / "metrics.csv")[-1]["mean_raw_intrinsic"] > 0
+
+
 def _sweep_cmd(exp):
     return [sys.executable, "-m", "mcrl.cli", "sweep", "--preset", "fetchreach-sacmc", "--alphas", "0,0.2",
             "--seeds", "1", "--steps", "400", "--backend", "vmap", "--workers", "1", "--exp", str(exp), "--no-progress",
@@ -105,7 +134,36 @@ def test_vmap_sweep_resumes_after_kill9(tmp_path):
     assert out.returncode == 0, out.stdout + out.stderr
     assert "group of 2 as one computation" in out.stdout, out.stdout
     assert "resume a0-s0 from step" in out.stdout and "resume a0.2-s0 from step" in out.stdout
+    _assert_matches_uninterrupted_group(exp, tmp_path)
 
+
+@pytest.mark.slow
+def test_vmap_sweep_ctrl_c_saves_the_group_and_resumes_exactly(tmp_path):
+    """Ctrl-C in a terminal (SIGINT to the driver and its group worker alike): the group saves both runs at their
+    episode's end and the sweep exits 130; the same command resumes them to an uninterrupted group's numbers."""
+    exp = tmp_path / "exp"
+    env = {**os.environ, "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+    proc = subprocess.Popen(_sweep_cmd(exp), env=env, start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    metrics = [exp / "runs" / n / "metrics.csv" for n in ("a0-s0", "a0.2-s0")]
+    deadline = time.monotonic() + 300
+    while not all(p.exists() and len(read_rows(p)) >= 2 for p in metrics):  # both past step 100
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[0] if proc.poll() else "slow"
+        time.sleep(0.1)
+    os.killpg(proc.pid, signal.SIGINT)
+    text = proc.communicate(timeout=300)[0]
+    assert proc.returncode == 130, text
+    for name in ("a0-s0", "a0.2-s0"):
+        run = exp / "runs" / name
+        assert not (run / "done").exists(), text
+        step = int((run / "checkpoints" / "latest").read_text().strip().split("_")[1])
+        assert step >= 100 and step % 50 == 0 and f"stopped {name} at step {step:,}" in text, text
+    out = subprocess.run(_sweep_cmd(exp), env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr
+    _assert_matches_uninterrupted_group(exp, tmp_path)
+
+
+def _assert_matches_uninterrupted_group(exp, tmp_path):
     from mcrl.sweep.plan import load_sweep_json
 
     ref_cfgs = [resolve_config("fetchreach-sacmc", e["overrides"]) for e in load_sweep_json(exp)["runs"]]

@@ -1,13 +1,16 @@
-"""The `mcrl` command line. Every user error ends in one line on stderr and exit code 2."""
+"""The `mcrl` command line. Every user error ends in one line on stderr and exit code 2; a run stopped by SIGINT or
+SIGTERM ends with 130 or 143 after saving a checkpoint it resumes from exactly (`mcrl.run.stop`)."""
 from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 from pathlib import Path
 
 from mcrl.errors import MCRLError
-from mcrl.run import rundir
+from mcrl.progress import progress as progress_bar
+from mcrl.run import rundir, stop
 from mcrl.extras import PLOT_MODULES, RENDER_MODULES, REPORT_MODULES, require_all, require_installed
 
 DEFAULT_PRESET = "fetchreach-sacmc"
@@ -35,15 +38,22 @@ def cmd_train(args) -> int:
     from mcrl.run import trainer
     from mcrl.video.render import record_training_video
 
-    if args.resume:
-        if args.preset or args.env or args.set:
-            raise MCRLError("--resume continues a run with its own config.json: drop --preset/--env/--set")
-        run_dir = trainer.resume(args.resume, progress=not args.no_progress, total_steps=args.steps,
-                                 video=record_training_video)
-    else:
-        preset = args.preset or (None if args.env else DEFAULT_PRESET)
-        cfg = resolve_config(preset, _overrides(args))
-        run_dir = trainer.train(cfg, args.run_dir, progress=not args.no_progress, video=record_training_video)
+    try:
+        if args.resume:
+            if args.preset or args.env or args.set:
+                raise MCRLError("--resume continues a run with its own config.json: drop --preset/--env/--set")
+            run_dir = trainer.resume(args.resume, progress=not args.no_progress, total_steps=args.steps,
+                                     video=record_training_video)
+        else:
+            preset = args.preset or (None if args.env else DEFAULT_PRESET)
+            cfg = resolve_config(preset, _overrides(args))
+            run_dir = trainer.train(cfg, args.run_dir, progress=not args.no_progress, video=record_training_video)
+    except stop.Stopped as e:
+        ((run_dir, step),) = e.saved
+        print(f"mcrl: {e}: saved at step {step:,} ({rundir.checkpoint_root(run_dir)}/"
+              f"{rundir.checkpoint_name(step)}); continue exactly with `mcrl train --resume {run_dir}`",
+              file=sys.stderr)
+        return e.exit_code
     summary = rundir.read_summary(run_dir)
     print(f"run directory: {run_dir}")
     if summary:
@@ -57,7 +67,8 @@ def cmd_train(args) -> int:
 def cmd_eval(args) -> int:
     from mcrl.run.evaluation import evaluate_run
 
-    res = evaluate_run(args.run_dir, episodes=args.episodes, checkpoint=args.checkpoint)
+    res = evaluate_run(args.run_dir, episodes=args.episodes, checkpoint=args.checkpoint,
+                       progress=not args.no_progress)
     sr = res["success_rate"]
     print(f"episodes: {res['episodes']}  success rate: {'n/a' if sr is None else f'{sr:.3f}'}  "
           f"mean return: {res['mean_return']:.3f}")
@@ -65,11 +76,11 @@ def cmd_eval(args) -> int:
 
 
 def cmd_presets(args) -> int:
-    from mcrl.config import PRESETS, Config, resolve_config
+    from mcrl.config import KEY_NOTES, PRESETS, Config, resolve_config
 
     if args.keys:
         for k, v in Config().to_dict().items():
-            print(f"{k} = {v!r}")
+            print(f"{k} = {v!r}" + (f"  # {KEY_NOTES[k]}" if k in KEY_NOTES else ""))
         return 0
     if args.name:
         print(resolve_config(args.name).to_json())
@@ -88,15 +99,11 @@ def cmd_measure(args) -> int:
     s, a, s2 = load_transitions(args.data)
     if args.out and Path(args.out).suffix not in (".npy", ".csv"):
         raise MCRLError(f"--out {args.out}: use a .npy or .csv file name")
-    bar = None
-    if not args.no_progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=args.max_steps, unit="step", desc="fitting MC models", mininterval=1.0)
+    bar = progress_bar(args.max_steps, "fitting MC models", enabled=not args.no_progress)
 
     def progress(t, loss):
-        bar.n = t
-        bar.set_postfix(heldout_nll=f"{loss:.4f}")
+        bar.postfix(f"heldout_nll={loss:.4f}")
+        bar.set(t)
 
     res = measure(s, a, s2, hidden=tuple(args.hidden), lr=args.lr, batch_size=args.batch_size,
                   max_steps=args.max_steps, seed=args.seed, progress=progress if bar else None)
@@ -169,10 +176,10 @@ def cmd_sweep(args) -> int:
                               tracking_uri=args.tracking_uri, retries=args.retries,
                               progress=not args.no_progress, group_size=args.group_size,
                               env_workers=args.env_workers)
-    except KeyboardInterrupt:
-        print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' checkpoints",
+    except KeyboardInterrupt:  # a second signal: the runs were killed, each keeps its last checkpoint
+        print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' last checkpoints",
               file=sys.stderr)
-        return 130
+        return stop.exit_code()
     done = len(res.finished) + len(res.skipped)
     print(f"experiment directory: {res.exp_dir} ({done} of {len(plan.runs)} runs finished)")
     if res.tracking_uri:
@@ -183,8 +190,13 @@ def cmd_sweep(args) -> int:
     if res.failed:
         print(f"mcrl: {len(res.failed)} run(s) failed ({', '.join(res.failed)}): fix the cause and re-run "
               f"`mcrl sweep --exp {res.exp_dir}` to resume them", file=sys.stderr)
-        return 1
-    return 0
+    if res.stopped_by is not None or res.stopped:
+        why = f"stopped by {signal.Signals(res.stopped_by).name}" if res.stopped_by is not None else "stopped"
+        print(f"mcrl: sweep {why}: {len(res.stopped)} run(s) saved at their episode's end; "
+              f"`mcrl sweep --exp {res.exp_dir}` resumes them exactly", file=sys.stderr)
+    if res.stopped_by is not None:
+        return 128 + res.stopped_by
+    return 1 if res.failed or res.stopped else 0
 
 
 def cmd_render(args) -> int:
@@ -192,7 +204,7 @@ def cmd_render(args) -> int:
     from mcrl.video.render import render_run
 
     path = render_run(args.run_dir, episodes=args.episodes, fmt=args.format, checkpoint_step=args.checkpoint,
-                      out=args.out, fps=args.fps)
+                      out=args.out, fps=args.fps, progress=not args.no_progress)
     print(f"wrote {path}")
     return 0
 
@@ -219,6 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("run_dir")
     e.add_argument("--episodes", type=int)
     e.add_argument("--checkpoint", type=int, metavar="STEP")
+    e.add_argument("--no-progress", action="store_true")
     e.set_defaults(func=cmd_eval)
 
     ps = sub.add_parser("presets", help="list presets; `mcrl presets NAME` shows one resolved")
@@ -291,6 +304,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", type=int, metavar="STEP", help="a checkpoint's step (default: the newest)")
     p.add_argument("--out", help="video path (default RUN_DIR/videos/policy_step<STEP>.<format>)")
     p.add_argument("--fps", type=float, default=25.0)
+    p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=cmd_render)
     return parser
 
@@ -302,9 +316,10 @@ def main(argv: list[str] | None = None) -> int:
     except MCRLError as e:
         print(f"mcrl: error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("mcrl: interrupted; a run continues with `mcrl train --resume RUN_DIR`", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt:  # a second Ctrl-C, or one outside training: nothing saved beyond the last checkpoint
+        print("mcrl: interrupted; a run continues from its last checkpoint with `mcrl train --resume RUN_DIR`",
+              file=sys.stderr)
+        return stop.exit_code()
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ class Config:
     # --- morphological computation ---
     mc_alpha: float = 0.0  # weight of the MC reward: (1 - a) r_ext + a r_mc
     mc_models: bool | None = None  # None = train the MC models iff mc_alpha > 0
+    intrinsic: str = "mc"  # the reward mc_alpha mixes in: mc (thesis) | rnd | icm | disagreement (docs/intrinsic.md)
     mc_lr: float = 3e-4
     mc_hidden_sizes: tuple[int, ...] = (256, 256, 256, 256, 256)
     mc_state: str = "observation"  # observation | full (observation + achieved_goal + desired_goal)
@@ -69,6 +70,11 @@ class Config:
     @property
     def use_mc_models(self) -> bool:
         return self.mc_alpha > 0 if self.mc_models is None else bool(self.mc_models)
+
+    @property
+    def intrinsic_models(self) -> str | None:
+        """The kind of intrinsic-reward models this run trains (`intrinsic`); None for plain SAC (none trained)."""
+        return self.intrinsic if self.use_mc_models else None
 
     @property
     def mc_values_per_step(self) -> int:
@@ -109,6 +115,18 @@ class Config:
                             "with `python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
         return cls.from_dict(d)
 
+
+INTRINSIC = ("mc", "rnd", "icm", "disagreement")  # `intrinsic`'s values: mcrl.algo.intrinsic builds each
+
+# One line about a key, where its name alone does not say it (`mcrl presets --keys` prints it beside the key).
+KEY_NOTES: dict[str, str] = {
+    "mc_alpha": "weight of the intrinsic reward `intrinsic` picks: (1 - a) r_ext + a r_int; 0 = plain SAC",
+    "mc_models": "train the intrinsic reward's models even at mc_alpha=0 (null: iff mc_alpha > 0)",
+    "intrinsic": "the intrinsic reward mc_alpha mixes in: mc (thesis) | rnd | icm | disagreement (docs/intrinsic.md)",
+    "mc_lr": "Adam learning rate of the intrinsic reward's models (any `intrinsic`)",
+    "mc_hidden_sizes": "MC models' hidden layers; rnd/icm/disagreement use their papers' depths at its widest width",
+    "mc_state": "the state every intrinsic reward sees: observation | full (+ achieved and desired goal)",
+}
 
 _FETCHPUSH = dict(env_id="FetchPush-v4", total_steps=150_000, learning_rate=3e-4, buffer_size=1_000_000,
                   batch_size=256, tau=0.005, gamma=0.99, her=True, mc_lr=3e-4, min_percentile=0.0,
@@ -229,6 +247,11 @@ def validate(cfg: Config) -> None:
         bad(f"mc_state={cfg.mc_state!r}: choose observation or full")
     if cfg.mc_reduction not in ("transition", "batch"):
         bad(f"mc_reduction={cfg.mc_reduction!r}: choose transition or batch")
+    if cfg.intrinsic not in INTRINSIC:
+        bad(f"intrinsic={cfg.intrinsic!r}: choose mc (the thesis' MC reward), rnd, icm or disagreement")
+    if cfg.intrinsic != "mc" and cfg.mc_reduction == "batch":
+        bad(f"mc_reduction=batch is the thesis code's MC variant (one batch-mean KL), not defined for "
+            f"intrinsic={cfg.intrinsic}: drop it (mc_reduction=transition)")
     if cfg.init not in ("torch", "flax"):
         bad(f"init={cfg.init!r}: choose torch (as stable-baselines3 and the thesis' code) or flax")
     if cfg.matmul_precision not in ("float32", "bfloat16"):

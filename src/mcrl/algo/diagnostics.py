@@ -12,13 +12,13 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.metrics import MC_METRICS, UPDATE_METRICS
+from mcrl.algo.metrics import UPDATE_METRICS, reported
 
 
 class Diagnostics(NamedTuple):
     metric_sums: dict  # name -> float32 sum since the last read
     metric_count: jax.Array  # gradient steps since the last read
-    bounds: jax.Array  # (2,) the normaliser's bounds at the last step (zeros without MC models)
+    bounds: jax.Array  # (2,) the normaliser's bounds at the last step (zeros without intrinsic models)
 
 
 def init() -> Diagnostics:
@@ -33,20 +33,22 @@ def add(diag: Diagnostics, metrics: dict) -> Diagnostics:
     return Diagnostics(sums, diag.metric_count + 1, bounds)
 
 
-def means(sums: dict, count: int, bounds, with_mc: bool) -> dict[str, float]:
-    """The log row's means from the sums of `count` gradient steps (MC metrics and bounds only `with_mc`)."""
-    out = {k: float(v) / count for k, v in sums.items() if with_mc or k not in MC_METRICS}
-    if with_mc:
+def means(sums: dict, count: int, bounds, intrinsic_models: str | None) -> dict[str, float]:
+    """The log row's means from the sums of `count` gradient steps: the metrics a run with `intrinsic_models`
+    (`Config.intrinsic_models`) reports (`mcrl.algo.metrics.reported`), and the bounds if it has any."""
+    keep = reported(intrinsic_models)
+    out = {k: float(v) / count for k, v in sums.items() if k in keep}
+    if intrinsic_models is not None:
         out["mc_bound_low"], out["mc_bound_high"] = float(bounds[0]), float(bounds[1])
     return out
 
 
-def read(diag: Diagnostics, with_mc: bool) -> tuple[dict[str, float], Diagnostics]:
+def read(diag: Diagnostics, intrinsic_models: str | None) -> tuple[dict[str, float], Diagnostics]:
     """Means since the last read ({} if no step was taken), and the diagnostics with the sums reset (host side)."""
     sums, count, bounds = jax.device_get((diag.metric_sums, diag.metric_count, diag.bounds))
     if int(count) == 0:
         return {}, diag
-    return means(sums, int(count), bounds, with_mc), reset(diag)
+    return means(sums, int(count), bounds, intrinsic_models), reset(diag)
 
 
 def reset(diag: Diagnostics) -> Diagnostics:

@@ -130,3 +130,25 @@ class ActionModel(nn.Module):
     @nn.compact
     def __call__(self, a):
         return GaussianHead(self.hidden, self.state_dim, self.init_scheme, self.matmul_precision)(a)
+
+
+ACTIVATIONS = {"relu": nn.relu, "elu": nn.elu,
+               # tf.nn.leaky_relu's default slope, which the RND and Disagreement papers' code used
+               "leaky_relu": lambda x: nn.leaky_relu(x, 0.2)}
+
+
+class Stack(nn.Module):
+    """Dense layers of `widths`, each followed by its activation in `acts` (None: linear), e.g. the intrinsic
+    rewards' networks (`mcrl.algo.rnd`, `mcrl.algo.icm`), initialised and multiplied like every network here."""
+
+    widths: Sequence[int]
+    acts: Sequence[str | None]
+    init_scheme: str = "torch"
+    matmul_precision: str = "float32"
+
+    @nn.compact
+    def __call__(self, x):
+        for width, act in zip(self.widths, self.acts, strict=True):
+            x = nn.Dense(width, **dense_kwargs(self.init_scheme, x.shape[-1], self.matmul_precision))(x)
+            x = x if act is None else ACTIVATIONS[act](x)
+        return x

@@ -1,12 +1,14 @@
 """SAC-MC: one gradient step as a pure function, jitted once.
 
 `Agent.update(state, batch) -> (state, metrics)` does, in one compiled call and in this order:
-  1. MC models' forward pass on the batch -> their NLL losses and the per-transition KL (one pass);
-  2. the KL values go into the percentile normaliser, then are mapped into the MC reward range;
-  3. reward = (1 - mc_alpha) * r_ext + mc_alpha * r_mc (exactly r_ext when mc_alpha == 0);
+  1. the intrinsic reward's models on the batch -> their losses and the raw reward of each transition (one pass):
+     MC's two models and the per-transition KL (`intrinsic=mc`, the default), or RND, ICM or Disagreement
+     (`mcrl.algo.intrinsic`);
+  2. the raw values go into the percentile normaliser, then are mapped into the reward range;
+  3. reward = (1 - mc_alpha) * r_ext + mc_alpha * r_int (exactly r_ext when mc_alpha == 0);
   4. critics (clipped double-Q target, polyak targets), actor, entropy coefficient — in the order of
      stable-baselines3 (entropy coefficient read before its own update);
-  5. the MC models' Adam step (so the reward used step t's models before their update, like the thesis).
+  5. the intrinsic models' Adam step (so the reward used step t's models before their update, like the thesis).
 `state` holds only what learns (parameters, optimiser states, targets, the normaliser's history, the key);
 `metrics` are the step's numbers by name, which the training loop adds up on the device in the same compiled
 call (`mcrl.algo.diagnostics`) and reads only at log intervals.
@@ -25,12 +27,18 @@ import jax.numpy as jnp
 import optax
 
 from mcrl.algo import normaliser
+from mcrl.algo.disagreement import Disagreement
+from mcrl.algo.icm import ICM
 from mcrl.algo.mc import MCModels, transition_kl
 from mcrl.algo.networks import GaussianHead, TwinCritic
+from mcrl.algo.rnd import RND
 from mcrl.config import Config
 from mcrl.replay import Batch
 
-__all__ = ["Agent", "Batch", "Hyper", "Learned", "MCStep", "TrainState", "tanh_gaussian_sample"]
+__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "MCStep", "TrainState",
+           "tanh_gaussian_sample"]
+
+INTRINSIC_MODELS = {"rnd": RND, "icm": ICM, "disagreement": Disagreement}  # `intrinsic` -> its models (not mc)
 
 
 class Learned(NamedTuple):
@@ -38,6 +46,14 @@ class Learned(NamedTuple):
 
     params: Any
     opt: Any
+
+
+class IntrinsicModels(NamedTuple):
+    """The models of an intrinsic reward other than MC (`mcrl.algo.intrinsic`)."""
+
+    params: Any  # trained by Adam at mc_lr
+    opt: Any
+    untrained: Any  # what no gradient trains (RND's target network, running state statistics); {} for ICM
 
 
 class TrainState(NamedTuple):
@@ -48,9 +64,10 @@ class TrainState(NamedTuple):
     q_target: Any  # polyak-averaged critic parameters
     ent: Learned  # log of the entropy coefficient
     mc_models: Learned | None  # transition and action-only models; None without MC models
-    norm: Any  # normaliser.NormaliserState, None without MC models
+    norm: Any  # normaliser.NormaliserState of the raw intrinsic rewards, None without intrinsic models
     key: jax.Array
     grad_steps: jax.Array
+    intrinsic: IntrinsicModels | None = None  # RND, ICM or Disagreement (`intrinsic`); None otherwise
 
 
 class Hyper(NamedTuple):
@@ -77,6 +94,18 @@ class MCStep(NamedTuple):
     grads: Any  # of both models' NLL
     transition_loss: jax.Array
     action_loss: jax.Array
+
+
+class IntrinsicStep(NamedTuple):
+    """The intrinsic part of one gradient step with RND, ICM or Disagreement (`Agent.intrinsic_reward`)."""
+
+    reward: jax.Array  # (B,) in [mc_reward_low, mc_reward_high]
+    raw: jax.Array  # (B,) raw reward before the normaliser
+    norm: Any
+    bounds: jax.Array
+    grads: Any
+    loss: jax.Array
+    untrained: Any  # the models' untrained part after this batch
 
 
 def tanh_gaussian_sample(mean, log_std, key):
@@ -111,6 +140,13 @@ class Agent:
                         matmul_precision=self.cfg.matmul_precision)
 
     @property
+    def intrinsic_net(self):
+        """The models of `intrinsic` (rnd | icm | disagreement) on the MC state, widths from `mc_hidden_sizes`."""
+        cfg = self.cfg
+        return INTRINSIC_MODELS[cfg.intrinsic](self.mc_dim, self.act_dim, max(cfg.mc_hidden_sizes), cfg.init,
+                                               cfg.matmul_precision)
+
+    @property
     def target_entropy(self) -> float:
         return -float(self.act_dim) if self.cfg.target_entropy is None else float(self.cfg.target_entropy)
 
@@ -124,15 +160,19 @@ class Agent:
         actor = self.actor_net.init(k_actor, obs)["params"]
         critic = self.critic_net.init(k_critic, obs, act)["params"]
         log_ent = jnp.log(jnp.float32(self.cfg.ent_coef_init))
-        mc_models = norm = None
-        if self.cfg.use_mc_models:
+        mc_models = norm = intrinsic = None
+        if self.cfg.intrinsic_models == "mc":
             mc = self.mc_net.init(k_mc, self.act_dim)
             mc_models = Learned(mc, self._opt(self.cfg.mc_lr).init(mc))
+        elif self.cfg.intrinsic_models is not None:
+            params, untrained = self.intrinsic_net.init(k_mc)
+            intrinsic = IntrinsicModels(params, self._opt(self.cfg.mc_lr).init(params), untrained)
+        if self.cfg.use_mc_models:
             norm = normaliser.init(self.cfg.mc_history_values)
         lr = self.cfg.learning_rate
         return TrainState(pi=Learned(actor, self._opt(lr).init(actor)), q=Learned(critic, self._opt(lr).init(critic)),
                           q_target=jax.tree.map(jnp.copy, critic), ent=Learned(log_ent, self._opt(lr).init(log_ent)),
-                          mc_models=mc_models, norm=norm, key=k_state, grad_steps=jnp.int32(0))
+                          mc_models=mc_models, norm=norm, key=k_state, grad_steps=jnp.int32(0), intrinsic=intrinsic)
 
     # ------------------------------------------------------------------ acting
     def act(self, actor_params, obs, key):
@@ -152,12 +192,29 @@ class Agent:
         kl = transition_kl(out)
         if cfg.mc_reduction == "batch":  # the thesis' code: one batch-mean value for every transition
             kl = jnp.broadcast_to(kl.mean(), kl.shape)
-            norm = normaliser.push(state.norm, kl[:1])  # one history value per step, as its code appended
+            r_mc, norm, bounds = self._scaled(state.norm, kl, kl[:1])  # one history value per step, as its code
         else:
-            norm = normaliser.push(state.norm, kl)
-        r_mc, (lo, hi) = normaliser.mc_reward(norm, kl, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
-                                              cfg.mc_reward_high)
-        return MCStep(r_mc, kl, norm, jnp.stack([lo, hi]), grads, lt, la)
+            r_mc, norm, bounds = self._scaled(state.norm, kl, kl)
+        return MCStep(r_mc, kl, norm, bounds, grads, lt, la)
+
+    def intrinsic_reward(self, state: TrainState, batch: Batch) -> IntrinsicStep:
+        """RND, ICM or Disagreement on the batch: raw reward, losses/grads, untrained part, scaled reward."""
+        s, s_next = batch.obs[:, : self.mc_dim], batch.next_obs[:, : self.mc_dim]
+        models = state.intrinsic
+        # a key of its own (Disagreement's masks), so that SAC's keys are the same with or without these models
+        out = self.intrinsic_net.step(models.params, models.untrained, s, batch.action, s_next,
+                                      jax.random.fold_in(state.key, 0x1A7))
+        reward, norm, bounds = self._scaled(state.norm, out.raw, out.raw)
+        return IntrinsicStep(reward, out.raw, norm, bounds, out.grads, out.loss, out.untrained)
+
+    def _scaled(self, norm, raw, history_values):
+        """The percentile normaliser, shared by every intrinsic reward: `history_values` pushed into its history,
+        then `raw` scaled into [mc_reward_low, mc_reward_high]. (reward, new history, (2,) bounds)."""
+        cfg = self.cfg
+        norm = normaliser.push(norm, history_values)
+        reward, (lo, hi) = normaliser.mc_reward(norm, raw, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
+                                                cfg.mc_reward_high)
+        return reward, norm, jnp.stack([lo, hi])
 
     # ------------------------------------------------------------------ one gradient step
     def _adam(self, learned: Learned, grads, lr: float) -> Learned:
@@ -165,25 +222,35 @@ class Agent:
         return Learned(optax.apply_updates(learned.params, upd), opt)
 
     def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None) -> tuple[TrainState, dict]:
-        """One gradient step: the new state, and the step's metrics by name (`mcrl.algo.metrics`; the MC ones
-        and the normaliser's bounds, `mc_bound_low` / `mc_bound_high`, only with MC models)."""
+        """One gradient step: the new state, and the step's metrics by name (`mcrl.algo.metrics`: those of the
+        run's intrinsic models and the normaliser's bounds, `mc_bound_low` / `mc_bound_high`, only with them)."""
         cfg = self.cfg
         h = Hyper.of(cfg) if hyper is None else hyper
         key, k_pi, k_next = jax.random.split(state.key, 3)
         m: dict[str, jax.Array] = {}
 
         reward = batch.reward
-        mc_models, norm = state.mc_models, state.norm
+        mc_models, norm, intrinsic = state.mc_models, state.norm, state.intrinsic
         if cfg.use_mc_models:
-            mc = self.mc_reward(state, batch)
+            if cfg.intrinsic == "mc":
+                step = self.mc_reward(state, batch)
+                m.update(transition_model_loss=step.transition_loss, action_model_loss=step.action_loss,
+                         mean_raw_kl=step.kl.mean())
+            else:
+                step = self.intrinsic_reward(state, batch)
+                m.update(intrinsic_loss=step.loss, mean_raw_intrinsic=step.raw.mean())
             if hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
-                reward = jnp.where(h.mc_alpha > 0, (1.0 - h.mc_alpha) * batch.reward + h.mc_alpha * mc.reward, reward)
+                reward = jnp.where(h.mc_alpha > 0, (1.0 - h.mc_alpha) * batch.reward + h.mc_alpha * step.reward,
+                                   reward)
             elif cfg.mc_alpha > 0:
-                reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * mc.reward
-            mc_models, norm = self._adam(state.mc_models, mc.grads, h.mc_lr), mc.norm
-            m.update(transition_model_loss=mc.transition_loss, action_model_loss=mc.action_loss,
-                     mean_mc_reward=mc.reward.mean(), mean_raw_kl=mc.kl.mean(), mc_bound_low=mc.bounds[0],
-                     mc_bound_high=mc.bounds[1])
+                reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * step.reward
+            if cfg.intrinsic == "mc":
+                mc_models = self._adam(state.mc_models, step.grads, h.mc_lr)
+            else:
+                learned = self._adam(Learned(intrinsic.params, intrinsic.opt), step.grads, h.mc_lr)
+                intrinsic = IntrinsicModels(learned.params, learned.opt, step.untrained)
+            norm = step.norm
+            m.update(mean_mc_reward=step.reward.mean(), mc_bound_low=step.bounds[0], mc_bound_high=step.bounds[1])
 
         ent_coef = jnp.exp(state.ent.params)
 
@@ -221,4 +288,4 @@ class Agent:
         m.update(actor_loss=actor_loss, critic_loss=critic_loss, ent_coef=ent_coef, ent_coef_loss=ent_loss,
                  q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean())
         return TrainState(pi=pi, q=q, q_target=q_target, ent=ent, mc_models=mc_models, norm=norm, key=key,
-                          grad_steps=state.grad_steps + 1), m
+                          grad_steps=state.grad_steps + 1, intrinsic=intrinsic), m

@@ -6,7 +6,8 @@ packed), `buffer.npz` (the replay buffer, optional) and `meta.json` (step counte
 config). `install` is the one way a checkpoint comes into being, whoever wrote its files (a run, or the sweep
 driver receiving a remote run's): every file fsynced in a temporary directory, renamed into place, then
 `checkpoints/latest` replaced atomically and the oldest pruned. `find` falls back to the newest complete
-checkpoint when `latest` is missing or dangling, so a kill at any moment leaves an older checkpoint usable.
+checkpoint when `latest` is missing or dangling, so a kill at any moment leaves an older checkpoint usable; a
+write that fails (a full disk) removes its temporary directory, freeing its space, and leaves `latest` as it was.
 Loading uses `numpy.load(allow_pickle=False)`: it runs no code. JAX is imported only by the functions that
 handle pytrees, so the sweep driver installs checkpoints without it.
 """
@@ -54,11 +55,15 @@ def install(run_dir: Path, step: int, write: Callable[[Path], None], keep: int) 
     tmp = ckpt_root / f".tmp-{final.name}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    write(tmp)
-    for p in tmp.iterdir():
-        with open(p, "rb+") as f:
-            os.fsync(f.fileno())
-    _fsync_dir(tmp)
+    try:
+        write(tmp)
+        for p in tmp.iterdir():
+            with open(p, "rb+") as f:
+                os.fsync(f.fileno())
+        _fsync_dir(tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # a full disk gets its space back; `latest` still names the last
+        raise
     if final.exists():  # the same step saved again (a resumed run): move the old one aside, drop it after
         old = ckpt_root / f".old-{final.name}"
         shutil.rmtree(old, ignore_errors=True)

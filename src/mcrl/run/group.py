@@ -8,9 +8,10 @@ scalars (mc_alpha, gamma, tau, learning rates) are data (`sac.Hyper`), so a grid
 
 SAC runs (mc_alpha = 0, no MC models) in a group with SAC-MC runs carry MC models as ballast so that the
 shapes agree: their reward is 1 * r + 0 * r_mc = r exactly, and the ballast never reaches their files (their
-checkpoints, metrics and config are a SAC run's; a resumed group re-draws it). Each run writes exactly what
-`mcrl train` writes, so `mcrl eval`, `render`, `report` and `--resume` see an ordinary run, and a run started
-in a group may finish alone.
+checkpoints, metrics and config are a SAC run's; a resumed group re-draws it). The same holds for the models of
+another intrinsic reward (`intrinsic`: rnd, icm, disagreement), which all runs of a group share. Each run writes
+exactly what `mcrl train` writes, so `mcrl eval`, `render`, `report` and `--resume` see an ordinary run, and a run
+started in a group may finish alone.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ import numpy as np
 
 from mcrl.algo import diagnostics
 from mcrl.algo.diagnostics import Diagnostics
-from mcrl.algo.metrics import MC_METRICS
+from mcrl.algo.metrics import INTRINSIC_METRICS, MC_METRICS
 from mcrl.algo.sac import Agent, Batch, Hyper, TrainState
 from mcrl.config import Config
 from mcrl.errors import MCRLError
@@ -65,12 +66,12 @@ class GroupLearner:
     """The learner of a group: the members' states and diagnostics stacked, one vmapped training step."""
 
     def __init__(self, members: list[Member], states: list[TrainState], diags: list[Diagnostics]):
-        self.with_mc = [m.cfg.use_mc_models for m in members]  # its own MC models, not ballast
+        self.own = [m.cfg.intrinsic_models for m in members]  # the kind of its own intrinsic models (not ballast)
         a = members[0].agent
-        self.cfg = dataclasses.replace(members[0].cfg, mc_alpha=0.0, mc_models=any(self.with_mc))
+        self.cfg = dataclasses.replace(members[0].cfg, mc_alpha=0.0, mc_models=any(self.own))
         self.agent = agent = Agent(a.obs_dim, a.act_dim, a.mc_dim, self.cfg)
         states = [s if own or not self.cfg.use_mc_models else self._with_ballast(s, m.cfg.seed)
-                  for s, m, own in zip(states, members, self.with_mc)]
+                  for s, m, own in zip(states, members, self.own)]
         self.state: TrainState = stack(states)
         self.diag: Diagnostics = stack(diags)
         self.hyper = Hyper(*(jnp.asarray([getattr(Hyper.of(m.cfg), f) for m in members], jnp.float32)
@@ -90,9 +91,9 @@ class GroupLearner:
         self._act = jax.jit(lambda actors, obs, t: jax.vmap(one, in_axes=(0, 0, 0, None))(actors, obs, keys, t))
 
     def _with_ballast(self, state: TrainState, seed: int) -> TrainState:
-        """A SAC run's state with the MC models and normaliser a fresh SAC-MC run of its seed would have."""
+        """A SAC run's state with the intrinsic models and normaliser a fresh run of its seed would have."""
         fresh = self.agent.init(seed)
-        return state._replace(mc_models=fresh.mc_models, norm=fresh.norm)
+        return state._replace(mc_models=fresh.mc_models, norm=fresh.norm, intrinsic=fresh.intrinsic)
 
     def act(self, obs: np.ndarray, t: int) -> np.ndarray:
         return np.asarray(self._act(self.state.pi.params, obs, t))
@@ -112,16 +113,18 @@ class GroupLearner:
     def read_metrics(self) -> list[dict[str, float]]:
         sums, counts, bounds = jax.device_get((self.diag.metric_sums, self.diag.metric_count, self.diag.bounds))
         out = [diagnostics.means({k: v[i] for k, v in sums.items()}, int(n), bounds[i], own) if n > 0 else {}
-               for i, (n, own) in enumerate(zip(counts, self.with_mc))]
+               for i, (n, own) in enumerate(zip(counts, self.own))]
         self.diag = diagnostics.reset(self.diag)
         return out
 
     def state_of(self, i: int) -> tuple[TrainState, Diagnostics]:
         """Run `i`'s own state and diagnostics (a SAC run's without the ballast and its metrics)."""
         s, d = take(self.state, i), take(self.diag, i)
-        if self.cfg.use_mc_models and not self.with_mc[i]:
-            sums = {k: (jnp.float32(0) if k in MC_METRICS else v) for k, v in d.metric_sums.items()}
-            s, d = s._replace(mc_models=None, norm=None), Diagnostics(sums, d.metric_count, jnp.zeros(2, jnp.float32))
+        if self.cfg.use_mc_models and not self.own[i]:
+            ballast = MC_METRICS + INTRINSIC_METRICS
+            sums = {k: (jnp.float32(0) if k in ballast else v) for k, v in d.metric_sums.items()}
+            s = s._replace(mc_models=None, norm=None, intrinsic=None)
+            d = Diagnostics(sums, d.metric_count, jnp.zeros(2, jnp.float32))
         return s, d
 
 

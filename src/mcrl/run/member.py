@@ -6,6 +6,9 @@ Reproducibility and resume: every environment reset is seeded from (seed, stream
 replay batches come from the run's own host RNG, and a checkpoint holds all of it (`save` / `open_member`): the
 learner's state, the diagnostics of the log interval in progress, the replay buffer, the host RNG and
 `Progress`, written at episode ends after that step's evaluation and log row.
+
+One writer per run: `open_member` locks the run directory (`mcrl.run.lock`) before it writes anything, and
+`Member.close` lets go.
 """
 from __future__ import annotations
 
@@ -23,6 +26,8 @@ from mcrl.envs import episode_seed
 from mcrl.errors import MCRLError
 from mcrl.replay import Batch, ReplayBuffer
 from mcrl.run import checkpoint, rundir
+from mcrl.run.lock import RunLock
+from mcrl.run.lock import acquire as lock_run_dir
 from mcrl.run.evaluation import TRAIN_STREAM, Evaluator
 from mcrl.run.logger import RunLogger
 from mcrl.run.policy import build, restore_run
@@ -43,8 +48,9 @@ class Member:
     """One run: the host side of its training (environment, buffer, RNG, counters) and its files."""
 
     def __init__(self, cfg: Config, run_dir: Path, env, agent: Agent, buffer: ReplayBuffer, rng: np.random.Generator,
-                 progress: Progress, resumed: bool):
+                 progress: Progress, resumed: bool, lock: RunLock | None = None):
         self.cfg, self.run_dir, self.env, self.agent, self.buffer = cfg, run_dir, env, agent, buffer
+        self.lock = lock  # held until `close`
         self.rng = rng  # warm-up actions and replay sampling
         self.progress = progress
         self.log = RunLogger(run_dir, resume_step=progress.step if resumed else None)
@@ -122,9 +128,13 @@ class Member:
         rundir.write_json_atomic(self.run_dir / rundir.DONE, {"step": self.progress.step, **self.progress.last_eval})
 
     def close(self) -> None:
-        self.log.close()
-        self.evaluator.close()
-        self.env.close()
+        try:
+            self.log.close()
+            self.evaluator.close()
+            self.env.close()
+        finally:
+            if self.lock is not None:
+                self.lock.release()
 
 
 def default_run_dir(cfg: Config) -> Path:
@@ -134,13 +144,16 @@ def default_run_dir(cfg: Config) -> Path:
 
 def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[Member, TrainState, Diagnostics]:
     """A run about to train, with its learner's state and diagnostics: new, or from its newest checkpoint with
-    `resume` (new if it has none). Writes its config.json and removes a stale `done`."""
+    `resume` (new if it has none), its directory locked for this process. Writes its config.json and removes a stale
+    `done`."""
     env, _, agent, buffer = build(cfg)  # validates env and spaces before anything is written
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
+    lock = None
     try:
         if not resume and (run_dir / rundir.CONFIG).exists():
             raise MCRLError(f"{run_dir} already holds a run: continue it with `mcrl train --resume {run_dir}` or "
                             "choose another --run-dir")
+        lock = lock_run_dir(run_dir)  # before anything is written: a second writer is refused here
         ckpt = None
         if resume:
             try:
@@ -160,11 +173,12 @@ def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[
             buffer.end_episode()  # the final checkpoint can be mid-episode; the env restarts with a new one
             rng.bit_generator.state = meta["host_rng"]
             progress = Progress(meta["step"], meta["episode"], meta["eval_round"], meta["interval"], meta["last_eval"])
+        rundir.write_json_atomic(run_dir / rundir.CONFIG, cfg.to_dict())
+        for stale in (rundir.DONE, rundir.FINAL_EVAL):
+            (run_dir / stale).unlink(missing_ok=True)
+        return Member(cfg, run_dir, env, agent, buffer, rng, progress, resumed=resume, lock=lock), state, diag
     except BaseException:
         env.close()
+        if lock is not None:
+            lock.release()
         raise
-    run_dir.mkdir(parents=True, exist_ok=True)
-    rundir.write_json_atomic(run_dir / rundir.CONFIG, cfg.to_dict())
-    for stale in (rundir.DONE, rundir.FINAL_EVAL):
-        (run_dir / stale).unlink(missing_ok=True)
-    return Member(cfg, run_dir, env, agent, buffer, rng, progress, resumed=resume), state, diag

@@ -12,12 +12,14 @@ documented in docs/run-directory.md:
     RUN_DIR/peer.json         reference runs made by another system (optional)
     RUN_DIR/checkpoints/step_<N>/ and checkpoints/latest           latest_checkpoint / write_latest
     RUN_DIR/videos/
+    RUN_DIR/.lock             held by the one process writing the run   mcrl.run.lock
 
 An experiment directory (``mcrl sweep``) holds ``EXP/sweep.json`` (its runs) and ``EXP/runs/<name>/``.
 """
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -39,6 +41,7 @@ PEER = "peer.json"
 CHECKPOINTS = "checkpoints"
 LATEST = "latest"
 VIDEOS = "videos"
+LOCK = ".lock"  # flock-ed by the run's one writer (mcrl.run.lock)
 SWEEP_JSON = "sweep.json"  # EXP/sweep.json: the runs of a sweep
 RUNS = "runs"              # EXP/runs/<name>/: its run directories
 SMALL_FILES = (CONFIG, METRICS, EVAL, FINAL_EVAL, PEER, DONE)  # what an experiment commits of a finished run
@@ -136,16 +139,30 @@ def read_columns(path: str | Path) -> dict[str, np.ndarray]:
             for k in rows[0]}
 
 
+def _whole_rows(path: Path) -> list[dict[str, str]]:
+    """The rows of a CSV this package wrote, without a last row that a crash or a full disk cut short (no line
+    end, or too few cells)."""
+    with open(path, newline="") as f:
+        text = f.read()
+    lines = list(csv.reader(io.StringIO(text[: text.rfind("\n") + 1])))
+    header = lines[0] if lines else []
+    return [dict(zip(header, cells)) for cells in lines[1:] if len(cells) == len(header)]
+
+
 def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
-    """Keep the header and rows with step <= max_step (a resumed run writes the later rows again)."""
+    """Keep the header and the whole rows with step <= max_step (a resumed run writes the later rows again);
+    the file is replaced atomically, so a failure here leaves it as it was."""
     if not path.exists():
         return
-    with open(path, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if int(float(r["step"])) <= max_step]
-    with open(path, "w", newline="") as f:
+    rows = [r for r in _whole_rows(path) if _number(r.get("step")) is not None and _number(r["step"]) <= max_step]
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=columns)
         w.writeheader()
         w.writerows(rows)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
 
 
 def start_csv(path: Path, columns: tuple[str, ...]) -> None:

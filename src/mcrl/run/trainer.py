@@ -9,11 +9,17 @@ device side; the video step is passed in by the caller (`mcrl.video.render.recor
 rendering sits above the run.
 
 A checkpoint is taken at an episode end, after that step's evaluation and log row, so a resumed run repeats
-none of them and ends with the same numbers as an uninterrupted run on the CPU.
+none of them and ends with the same numbers as an uninterrupted run on the CPU. On SIGINT or SIGTERM
+(`mcrl.run.stop`) each run saves such a checkpoint at its next episode end and the loop raises `stop.Stopped`;
+a full disk ends the run with a one-line MCRLError, its last complete checkpoint intact.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
+import shutil
+import sys
 import time
 from pathlib import Path
 from typing import Callable
@@ -22,18 +28,22 @@ import numpy as np
 
 from mcrl.config import Config
 from mcrl.errors import MCRLError
-from mcrl.run import rundir
+from mcrl.progress import progress as progress_bar
+from mcrl.run import rundir, stop
 from mcrl.run.envpool import EnvPool
 from mcrl.run.learner import Learner
+from mcrl.run.lock import check_free
 from mcrl.run.member import Member, open_member
 
 VideoStep = Callable  # (cfg, agent, state, run_dir, step, logger) -> path of the video, e.g. record_training_video
 
 
 def run_loop(members: list[Member], learner, pool: EnvPool, video: VideoStep | None = None, bar=None) -> None:
-    """Train `members` (equal schedules: `mcrl.run.group.group_key`) from their common step to `total_steps`."""
+    """Train `members` (equal schedules: `mcrl.run.group.group_key`) from their common step to `total_steps`;
+    after a stop request (`mcrl.run.stop.requested`), raise `stop.Stopped` once each has saved at an episode end."""
     cfg = members[0].cfg
     step = members[0].progress.step
+    saved_for_stop: set[int] | None = None  # the members that saved since the stop was noticed
     t_start, steps_at_start = time.perf_counter(), step
     for i, m in enumerate(members):
         m.obs = pool.reset(i, m.episode_seed())
@@ -64,23 +74,56 @@ def run_loop(members: list[Member], learner, pool: EnvPool, video: VideoStep | N
             elapsed = time.perf_counter() - t_start
             rows = [m.log_row(mx, elapsed, step - steps_at_start) for m, mx in zip(members, learner.read_metrics())]
             if bar is not None:
-                bar.set_postfix(_postfix(members, rows[-1]), refresh=False)
+                bar.postfix(_postfix(members, rows[-1]))
         for i, m in enumerate(members):
             if m.ckpt_due:  # after this step's evaluation and log row, so a resume repeats none of them
                 m.save(*learner.state_of(i))
+        if stop.requested() is not None and not final:
+            if saved_for_stop is None:
+                saved_for_stop = set()
+                _say(stop.announcement(step), bar)
+            for i, m in enumerate(members):  # an episode end is the first point from which a resume is exact
+                if i not in saved_for_stop and (res.terminated[i] or res.truncated[i]):
+                    if m.last_ckpt != step:
+                        m.save(*learner.state_of(i))
+                    saved_for_stop.add(i)
+            if len(saved_for_stop) == len(members):
+                raise stop.Stopped(stop.requested(), [(m.run_dir, m.last_ckpt) for m in members])
         if bar is not None:
             bar.update(1)
     for i, m in enumerate(members):
         m.finish(*learner.state_of(i))
 
 
-def _postfix(members: list[Member], row: dict) -> dict:
+def _postfix(members: list[Member], row: dict) -> str:
     post = {"sps": f"{row['steps_per_s']:.0f}" if row["steps_per_s"] else "-"}
     if len(members) > 1:
         post["runs"] = len(members)
     elif members[0].progress.last_eval["success_rate"] is not None:
         post["success"] = f"{members[0].progress.last_eval['success_rate']:.2f}"
-    return post
+    return ", ".join(f"{k}={v}" for k, v in post.items())
+
+
+def _say(msg: str | None, bar) -> None:
+    if msg is not None:
+        bar.write(msg) if bar is not None else print(msg, file=sys.stderr, flush=True)
+
+
+def _disk_full(e: OSError, run_dirs: list[Path]) -> MCRLError:
+    """The one-line error of a write that found no space: the disk, and what each run kept."""
+    kept = []
+    for d in run_dirs:
+        name = rundir.latest_checkpoint(d)
+        step = rundir.checkpoint_step(name) if name else None
+        kept.append(f"{d} resumes from step {step:,}" if step is not None else f"{d} starts over")
+    where = e.filename or (run_dirs[0] if run_dirs else None)
+    try:
+        free = f", {shutil.disk_usage(Path(where).parent if e.filename else where).free / 2**20:,.0f} MiB free"
+    except (OSError, TypeError):
+        free = ""
+    return MCRLError(f"{e.strerror or 'no space left on device'} ({where}{free}): each run keeps its last complete "
+                     f"checkpoint ({'; '.join(kept)}); free space, then resume with `mcrl train --resume RUN_DIR` "
+                     "(a sweep: run it again)")
 
 
 def train_runs(cfgs: list[Config], run_dirs: list[Path | str | None], resume: bool, make_learner: Callable,
@@ -92,32 +135,36 @@ def train_runs(cfgs: list[Config], run_dirs: list[Path | str | None], resume: bo
                         "step: use mcrl.train or `mcrl train`, or pass video=mcrl.video.render.record_training_video")
     members, states, diags = [], [], []
     pool = bar = None
+    ok = False
     try:
-        for cfg, d in zip(cfgs, run_dirs):
-            m, s, dg = open_member(cfg, d, resume)
-            members.append(m)
-            states.append(s)
-            diags.append(dg)
-        steps = {m.progress.step for m in members}
-        if len(steps) != 1:
-            raise MCRLError(f"the runs of a group must resume from the same step, not {sorted(steps)}: "
-                            "group them by their checkpoints' steps")
-        learner = make_learner(members, states, diags)
-        # each run's own env recomputes its HER rewards; the pool steps it, or steps copies in worker processes
-        pool = EnvPool(cfgs, env_workers, envs=[m.env for m in members])
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=cfgs[0].total_steps, initial=steps.pop(), unit="step", dynamic_ncols=True,
-                       smoothing=0.05, mininterval=1.0)
-        run_loop(members, learner, pool, video, bar)
+        with stop.handle():
+            for d in run_dirs:  # a run another process writes: refused before this call writes anything
+                if d is not None:
+                    check_free(d)
+            for cfg, d in zip(cfgs, run_dirs):
+                m, s, dg = open_member(cfg, d, resume)
+                members.append(m)
+                states.append(s)
+                diags.append(dg)
+            steps = {m.progress.step for m in members}
+            if len(steps) != 1:
+                raise MCRLError(f"the runs of a group must resume from the same step, not {sorted(steps)}: "
+                                "group them by their checkpoints' steps")
+            learner = make_learner(members, states, diags)
+            # each run's own env recomputes its HER rewards; the pool steps it, or steps copies in worker processes
+            pool = EnvPool(cfgs, env_workers, envs=[m.env for m in members])
+            bar = progress_bar(cfgs[0].total_steps, "train", initial=steps.pop(), enabled=progress)
+            run_loop(members, learner, pool, video, bar)
+        ok = True
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise _disk_full(e, [m.run_dir for m in members]) from None
     finally:
-        if bar is not None:
-            bar.close()
-        if pool is not None:
-            pool.close()
-        for m in members:
-            m.close()
+        for close in [*([bar.close] if bar is not None else []), *([pool.close] if pool is not None else []),
+                      *(m.close for m in members)]:
+            with contextlib.suppress(*(() if ok else (OSError,))):  # an error on its way out stays the error
+                close()
     return [m.run_dir for m in members]
 
 

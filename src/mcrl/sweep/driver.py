@@ -1,8 +1,9 @@
 """The driver's bookkeeping, shared by both backends: what it prints, and the result it returns.
 
-One line per run event (``[3/8] start NAME (pid ...)``, ``finished``, ``FAILED``, ``skip``) and an
-overall tqdm bar over all runs' steps; the bar follows running runs through their metrics.csv. The
-backends report each run's end here (``finished`` / ``failed``), which fills the ``SweepResult``.
+One line per run event (``[3/8] start NAME (pid ...)``, ``finished``, ``FAILED``, ``stopped``, ``skip``) and
+an overall progress bar over all runs' steps (``mcrl.progress``: a plain line every few percent in a pipe or a
+file); the bar follows running runs through their metrics.csv. The backends report each run's end here
+(``finished`` / ``failed`` / ``stopped``), which fills the ``SweepResult``.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from mcrl.progress import Progress, duration
 from mcrl.sweep.files import last_logged_step, run_dir
 from mcrl.sweep.plan import RunPlan
 
@@ -25,6 +27,8 @@ class SweepResult:
     finished: list[str] = field(default_factory=list)  # finished in this call
     skipped: list[str] = field(default_factory=list)  # already finished before
     failed: dict[str, str] = field(default_factory=dict)
+    stopped: dict[str, int | None] = field(default_factory=dict)  # stopped by a signal: its checkpoint's step
+    stopped_by: int | None = None  # the signal that stopped this sweep call (SIGINT, SIGTERM)
     tracking_uri: str | None = None
     tracking_experiment: str | None = None
 
@@ -47,13 +51,7 @@ class Driver:
         self.finished = 0
         self.steps: dict[str, int] = {}
         self._out = out
-        self.bar = None
-        if progress:
-            from tqdm import tqdm
-
-            total = sum(r.config.total_steps for r in runs)
-            self.bar = tqdm(total=total, unit="step", desc="sweep", dynamic_ncols=True, mininterval=1.0,
-                            smoothing=0.05, file=sys.stderr)
+        self.bar = Progress(sum(r.config.total_steps for r in runs), "sweep", file=sys.stderr) if progress else None
         self._last_poll = 0.0
 
     # ---- output
@@ -75,9 +73,8 @@ class Driver:
 
     def _refresh(self) -> None:
         if self.bar is not None:
-            self.bar.n = sum(min(s, self.runs[n].config.total_steps) for n, s in self.steps.items())
-            self.bar.set_postfix_str(f"runs {self.finished}/{self.total_runs}", refresh=False)
-            self.bar.refresh()
+            self.bar.postfix(f"runs {self.finished}/{self.total_runs}")
+            self.bar.set(sum(min(s, self.runs[n].config.total_steps) for n, s in self.steps.items()))
 
     def poll(self, running: list[str]) -> None:
         """Read the progress of running runs from their metrics.csv (at most once a second)."""
@@ -110,6 +107,12 @@ class Driver:
         if self.on_finish is not None:
             self.on_finish(run, summary)
 
+    def stopped(self, name: str, step: int | None) -> None:
+        """Run `name` stopped on a signal after saving a checkpoint at `step` (None: it had not started)."""
+        self.result.stopped[name] = step
+        where = f"at step {step:,}, checkpoint saved" if step is not None else "before it started"
+        self.line(f"{self.tag()} stopped {name} {where}")
+
     def failed(self, name: str, why: str, traceback: str | None = None) -> None:
         """Run `name` failed; its traceback (if any) goes to its sweep-error.log. The other runs go on."""
         if traceback:
@@ -119,12 +122,6 @@ class Driver:
             why += f" (traceback in {log})"
         self.result.failed[name] = why
         self.line(f"{self.tag()} FAILED {name}: {why}")
-
-
-def duration(seconds: float) -> str:
-    s = int(round(seconds))
-    return f"{s // 3600}h{s % 3600 // 60:02d}m{s % 60:02d}s" if s >= 3600 else (
-        f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s")
 
 
 def summary_text(summary: dict) -> str:

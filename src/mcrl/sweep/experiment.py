@@ -4,7 +4,8 @@ In order: validate every setting (backend, counts, ``EXP`` against a sweep alrea
 address, the tracking URI) while nothing is written; then lock ``EXP``, write ``EXP/sweep.json`` (the
 union of the runs there and the plan's), skip finished runs and hand the others to a backend
 (``local.run_local``, ``local.run_vmap`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in
-a background thread (``tracking``), so the next runs start meanwhile.
+a background thread (``tracking``), so the next runs start meanwhile. On SIGINT or SIGTERM the backend starts no
+more runs and lets the running ones save at their episode ends (``SweepResult.stopped_by``).
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from typing import Callable
 
 from mcrl.config import resolve_config
 from mcrl.errors import MCRLError
+from mcrl.run import stop
 from mcrl.sweep.driver import Driver, SweepResult
 from mcrl.sweep.files import RUNS, run_dir, run_status
 from mcrl.sweep.local import run_local, run_vmap
@@ -206,17 +208,19 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
             for name in result.skipped:
                 if not tracker.is_logged(name):
                     on_finish(next(r for r in plan.runs if r.name == name), {})
-        if backend == "local":
-            run_local(todo, exp, sweep_id, n_workers, env, retries, drv)
-        elif backend == "vmap":
-            run_vmap(todo, exp, sweep_id, n_workers, env, retries, drv, group_size, env_workers)
-        else:
-            if workers:
-                limit = workers
+        with stop.handle():  # the first SIGINT/SIGTERM: the backend lets the running runs save and stop
+            if backend == "local":
+                run_local(todo, exp, sweep_id, n_workers, env, retries, drv)
+            elif backend == "vmap":
+                run_vmap(todo, exp, sweep_id, n_workers, env, retries, drv, group_size, env_workers)
             else:
-                cpus = float(ray.cluster_resources().get("CPU", n_workers * threads))
-                limit = max(1, int(cpus // threads))
-            run_ray(ray, todo, exp, sweep_id, limit, threads, gpus_per_run, env, retries, local_instance, drv)
+                if workers:
+                    limit = workers
+                else:
+                    cpus = float(ray.cluster_resources().get("CPU", n_workers * threads))
+                    limit = max(1, int(cpus // threads))
+                run_ray(ray, todo, exp, sweep_id, limit, threads, gpus_per_run, env, retries, local_instance, drv)
+            result.stopped_by = stop.requested()
         if log_pool is not None:
             if any(not j.done() for j in log_jobs):
                 drv.line("logging the last run(s) to MLflow ...")

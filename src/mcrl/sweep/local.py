@@ -3,20 +3,28 @@
 A job is one run (``--backend local``) or a group of runs trained as one vmapped computation
 (``--backend vmap``, see ``mcrl.run.group``). Each worker process starts with the thread limits of
 ``worker.thread_env`` in its environment (set before it imports anything, so before jax), writes straight
-into ``EXP/runs/<name>/``, dies with the driver, and sends one message back through a pipe:
-("ok", {name: summary}, None) or ("error", why, traceback). A worker that dies without a message (killed,
-out of memory) is retried from its runs' last checkpoints up to ``retries`` times.
+into ``EXP/runs/<name>/`` (each run locked, as `mcrl train` locks it), dies with the driver, and sends one
+message back through a pipe: ("ok", {name: summary}, None), ("stopped", {name: step}, None) or ("error", why,
+traceback). A worker that dies without a message (killed, out of memory) is retried from its runs' last
+checkpoints up to ``retries`` times.
+
+Signals: the driver's first SIGINT or SIGTERM (`mcrl.run.stop`) starts no more runs and sends SIGTERM to the
+running workers, which save each run at its next episode end and report "stopped"; the driver waits for them. A
+worker takes every signal as that one request (a terminal's Ctrl-C reaches it and its driver alike); a second
+signal to the driver kills the workers at once, each run keeping its last checkpoint.
 """
 from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import time
 from collections import deque
 from pathlib import Path
 from typing import Any
 
 from mcrl.errors import MCRLError
+from mcrl.run import lock, stop
 from mcrl.sweep.driver import Driver
 from mcrl.sweep.files import run_dir, run_status
 from mcrl.sweep.plan import RunPlan
@@ -27,13 +35,18 @@ def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
     """Entry point of a local worker process (spawned; jax not imported yet)."""
     os.environ.update(env)
     die_with_parent()
+    lock.describe_holder(f"a worker of `mcrl sweep --exp {spec['exp']}`")
     try:
-        if len(spec["runs"]) == 1 and not spec["group"]:
-            (run,) = spec["runs"]
-            summaries = {run["name"]: train_one(run["config"], run["run_dir"])}
-        else:
-            summaries = train_group_runs(spec["runs"], spec["env_workers"])
+        with stop.handle(second_stops_now=False):  # the driver kills the worker for a second signal
+            if len(spec["runs"]) == 1 and not spec["group"]:
+                (run,) = spec["runs"]
+                summaries = {run["name"]: train_one(run["config"], run["run_dir"])}
+            else:
+                summaries = train_group_runs(spec["runs"], spec["env_workers"])
         conn.send(("ok", summaries, None))
+    except stop.Stopped as e:
+        names = {os.path.abspath(r["run_dir"]): r["name"] for r in spec["runs"]}
+        conn.send(("stopped", {names[os.path.abspath(d)]: step for d, step in e.saved}, None))
     except MCRLError as e:
         conn.send(("error", str(e), None))
     except KeyboardInterrupt:
@@ -60,8 +73,19 @@ def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, 
     ctx = mp.get_context("spawn")
     queue = deque((job, 0) for job in jobs)
     running: dict[str, tuple] = {}  # job label -> (process, conn, runs, attempt, t0)
+    stopping = False
     try:
         while queue or running:
+            if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
+                stopping = True
+                queue.clear()
+                drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
+                         "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
+                for proc, *_ in running.values():
+                    with contextlib.suppress(OSError):
+                        os.kill(proc.pid, signal.SIGTERM)
+                if not running:
+                    break
             while queue and len(running) < workers:
                 job, attempt = queue.popleft()
                 spec = {"runs": [{"name": r.name, "config": r.config.to_dict(), "run_dir": str(run_dir(exp, r.name))}
@@ -98,6 +122,10 @@ def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, 
                     for r in job:
                         drv.done(r, t0, msg[1][r.name])
                     continue
+                if msg is not None and msg[0] == "stopped":
+                    for r in job:
+                        drv.stopped(r.name, msg[1].get(r.name))
+                    continue
                 if msg is not None:
                     for r in job:
                         drv.failed(r.name, msg[1], msg[2])
@@ -105,7 +133,7 @@ def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, 
                 code = proc.exitcode
                 why = (f"worker killed by signal {-code}" if code is not None and code < 0
                        else f"worker exited with code {code}")
-                if attempt < retries:
+                if attempt < retries and not stopping:
                     drv.line(f"{drv.tag()} {label}: {why}; retrying from its last checkpoint "
                              f"({attempt + 1} of {retries})")
                     queue.appendleft((job, attempt + 1))
@@ -113,6 +141,10 @@ def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, 
                     for r in job:
                         drv.failed(r.name, why)
             drv.poll([r.name for _p, _c, job, *_ in running.values() for r in job])
+    except KeyboardInterrupt:  # a second signal: stop the workers at once (each run keeps its last checkpoint)
+        for proc, *_ in running.values():
+            proc.kill()
+        raise
     finally:
         for proc, *_ in running.values():  # interrupted: stop the runs (each keeps its checkpoints)
             if proc.is_alive():

@@ -5,7 +5,12 @@ Each task declares ``num_cpus=threads_per_run`` (and ``num_gpus``) and runs in a
 with the local backend's thread settings (``worker.thread_env``), so a sweep gives the same numbers on
 both. A task that sees ``EXP`` (shared filesystem) writes into it; one that does not trains in a
 temporary directory and ships the run's files back (``files.collect_run_files``): each new checkpoint
-through an ``_Inbox`` actor while it trains, everything at the end. The driver writes them into ``EXP``.
+through an ``_Inbox`` actor while it trains, everything at the end. The driver writes them into ``EXP``, holding
+the run's lock (`mcrl.run.lock`) meanwhile, as a task that writes into ``EXP`` holds it itself.
+
+Signals: the driver's first SIGINT or SIGTERM (`mcrl.run.stop`) starts no more tasks and raises a flag in the
+``_Inbox``; each running task polls it and stops its run at the next episode end with a checkpoint (shipped back
+if need be), as `mcrl train` does on a signal. A second signal cancels the tasks at once.
 
 Ray is imported only when the sweep uses it (``import_ray``), after ``ray_auth_env`` has set what Ray
 reads at import time.
@@ -16,6 +21,7 @@ import contextlib
 import os
 import re
 import shutil
+import signal
 import socket
 import sys
 import tempfile
@@ -26,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from mcrl.errors import MCRLError
-from mcrl.run import rundir
+from mcrl.run import lock, rundir, stop
 from mcrl.sweep.driver import Driver
 from mcrl.sweep.files import collect_run_files, run_dir, run_status, write_run_files
 from mcrl.run.rundir import SWEEP_JSON
@@ -115,6 +121,14 @@ class _Inbox:
 
     def __init__(self):
         self.msgs: list = []
+        self.stop = False  # the driver asks the running tasks to save and stop
+
+    def request_stop(self) -> bool:
+        self.stop = True
+        return True
+
+    def stopping(self) -> bool:
+        return self.stop
 
     def push(self, msg) -> bool:
         self.msgs.append(msg)
@@ -135,22 +149,36 @@ def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> 
     """One run as a Ray task (runs in a fresh worker whose thread env vars came with the task)."""
     import ray
 
+    if ray.get(inbox.stopping.remote()):
+        return {"stopped": None}
+    lock.describe_holder(f"a Ray task of `mcrl sweep --exp {spec['exp']}`")
     shared = not force_ship and _sees_experiment(spec)
     ray.get(inbox.push.remote(("start", spec["name"], os.getpid(), socket.gethostname(), shared)))
+    done = threading.Event()
+
+    def watch_for_stop():  # the driver's stop request, as a signal would make it
+        while not done.wait(1.0):
+            with contextlib.suppress(Exception):
+                if ray.get(inbox.stopping.remote()):
+                    stop.request()
+                    return
+
+    threading.Thread(target=watch_for_stop, daemon=True).start()
     try:
         if shared:
-            return {"summary": train_one(spec["config"], spec["run_dir"])}
+            with stop.handle(second_stops_now=False):
+                return {"summary": train_one(spec["config"], spec["run_dir"])}
         tmp = Path(tempfile.mkdtemp(prefix="mcrl-sweep-"))
         rdir = tmp / spec["name"]
         try:
             seed = ray.get(seed_box[0]) if seed_box else None
             if seed:
                 write_run_files(rdir, seed, keep=int(spec["config"]["keep_checkpoints"]))
-            stop = threading.Event()
+            shipping_done = threading.Event()
 
             def ship_checkpoints():  # send every new checkpoint (and the CSVs up to it) to the driver
                 sent = None
-                while not stop.wait(1.0):
+                while not shipping_done.wait(1.0):
                     try:
                         latest = rundir.latest_checkpoint(rdir)
                         if latest is not None and latest != sent:
@@ -163,18 +191,27 @@ def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> 
             watcher = threading.Thread(target=ship_checkpoints, daemon=True)
             watcher.start()
             try:
-                summary = train_one(spec["config"], rdir)
+                with stop.handle(second_stops_now=False):
+                    summary = train_one(spec["config"], rdir)
+            except stop.Stopped as e:
+                ((_, step),) = e.saved
+                return {"stopped": step, "files": collect_run_files(rdir, final=False)}
             finally:
-                stop.set()
+                shipping_done.set()
                 watcher.join()
             return {"summary": summary, "files": collect_run_files(rdir, final=True)}
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+    except stop.Stopped as e:
+        ((_, step),) = e.saved
+        return {"stopped": step}
     except MCRLError as e:
         return {"error": str(e)}
     except Exception as e:
         why, tb = error_report(e)
         return {"error": why, "traceback": tb}
+    finally:
+        done.set()
 
 
 # ------------------------------------------------------------------------------ the driver side
@@ -197,8 +234,18 @@ def run_ray(ray, todo: list[RunPlan], exp: Path, sweep_id: str, limit: int, thre
     queue = deque(todo)
     inflight: dict[Any, tuple] = {}  # ref -> (run, t0, seed ref)
     by_name: dict[str, RunPlan] = {r.name: r for r in todo}
+    locks: dict[str, lock.RunLock] = {}  # runs whose files this driver writes (their tasks ship them back)
+    stopping = False
     try:
         while queue or inflight:
+            if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
+                stopping = True
+                queue.clear()
+                drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
+                         "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
+                ray.get(inbox.request_stop.remote())
+                if not inflight:
+                    break
             while queue and len(inflight) < limit:
                 run = queue.popleft()
                 rdir = run_dir(exp, run.name)
@@ -219,24 +266,29 @@ def run_ray(ray, todo: list[RunPlan], exp: Path, sweep_id: str, limit: int, thre
                     _, name, pid, host, shared = msg
                     drv.line(f"{drv.tag()} start {name} (pid {pid} on {host}"
                              f"{'' if shared else ', files shipped back'})")
-                elif msg[0] == "files":
+                    if not shared and name not in locks:  # (a retried task starts again: locked already)
+                        try:
+                            locks[name] = lock.acquire(run_dir(exp, name))
+                        except MCRLError as e:  # someone else writes the run: it cannot be shipped into it
+                            ref = next(r for r, (run, *_) in inflight.items() if run.name == name)
+                            with contextlib.suppress(Exception):
+                                ray.cancel(ref, force=True)
+                            inflight.pop(ref)
+                            drv.failed(name, str(e))
+                elif msg[0] == "files" and msg[1] in locks:
                     _, name, files = msg
                     write_run_files(run_dir(exp, name), files, by_name[name].config.keep_checkpoints)
                     drv.set_steps(name, run_status(run_dir(exp, name))[1])
             for ref in ready:
+                if ref not in inflight:  # cancelled above
+                    continue
                 run, t0, _seed = inflight.pop(ref)
+                held = locks.pop(run.name, None)
                 try:
-                    out = ray.get(ref)
-                except Exception as e:  # the worker died (killed, out of memory, node lost) after its retries
-                    first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-                    drv.failed(run.name, f"{type(e).__name__}: {first}"[:300])
-                    continue
-                if "error" in out:
-                    drv.failed(run.name, out["error"], out.get("traceback"))
-                    continue
-                if "files" in out:
-                    write_run_files(run_dir(exp, run.name), out["files"], run.config.keep_checkpoints)
-                drv.done(run, t0, out["summary"])
+                    _finish(ray, ref, run, t0, exp, drv)
+                finally:
+                    if held is not None:
+                        held.release()
             drv.poll([r.name for r, *_ in inflight.values()])
     finally:
         for ref in inflight:
@@ -244,3 +296,24 @@ def run_ray(ray, todo: list[RunPlan], exp: Path, sweep_id: str, limit: int, thre
                 ray.cancel(ref, force=True)
         with contextlib.suppress(Exception):
             ray.kill(inbox)
+        for held in locks.values():
+            held.release()
+
+
+def _finish(ray, ref, run: RunPlan, t0: float, exp: Path, drv: Driver) -> None:
+    """Report the end of `run`'s task `ref` to `drv`, writing the files it shipped back."""
+    try:
+        out = ray.get(ref)
+    except Exception as e:  # the worker died (killed, out of memory, node lost) after its retries
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        drv.failed(run.name, f"{type(e).__name__}: {first}"[:300])
+        return
+    if "error" in out:
+        drv.failed(run.name, out["error"], out.get("traceback"))
+        return
+    if "files" in out:
+        write_run_files(run_dir(exp, run.name), out["files"], run.config.keep_checkpoints)
+    if "stopped" in out:
+        drv.stopped(run.name, out["stopped"])
+    else:
+        drv.done(run, t0, out["summary"])

@@ -23,6 +23,7 @@ from mcrl.algo.sac import Agent, TrainState
 from mcrl.config import Config
 from mcrl.envs import episode_seed, flatten_obs, to_env_action
 from mcrl.errors import MCRLError
+from mcrl.progress import progress as progress_bar
 from mcrl.run import checkpoint, rundir
 from mcrl.run.policy import load_policy
 from mcrl.video.encode import encode_gif, write_video
@@ -83,8 +84,9 @@ def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int,
 
 def render_policy(cfg: Config, agent: Agent, state: TrainState, out_path: Path, episodes: int = 1,
                   fmt: str = "mp4", fps: float = FPS, seed_offset: int = 0, width: int | None = None,
-                  height: int | None = None) -> tuple[Path, list[dict], list[np.ndarray]]:
-    """Render `episodes` deterministic episodes into one video; returns its path, the episodes, the frames."""
+                  height: int | None = None, bar=None) -> tuple[Path, list[dict], list[np.ndarray]]:
+    """Render `episodes` deterministic episodes into one video; returns its path, the episodes, the frames.
+    `bar` (`mcrl.progress`) counts the episodes."""
     check_renderer(cfg.env_id, **cfg.env_kwargs)
     env = make_render_env(cfg.env_id, width=width, height=height, **cfg.env_kwargs)
     frames, eps = [], []
@@ -94,14 +96,17 @@ def render_policy(cfg: Config, agent: Agent, state: TrainState, out_path: Path, 
             ep = record_episode(cfg, agent, state, env, episode_seed(cfg.seed, _RENDER_STREAM, seed_offset + i), act)
             frames.extend(compose_episode(ep["frames"], ep["series"], ep["success"] if ep["has_success"] else None))
             eps.append(ep)
+            if bar is not None:
+                bar.update(1)
     finally:
         env.close()
     return write_video(frames, out_path, fmt=fmt, fps=fps), eps, frames
 
 
 def render_run(run_dir: Path | str, episodes: int = 1, fmt: str = "mp4", checkpoint_step: int | None = None,
-               out: Path | str | None = None, fps: float = FPS) -> Path:
-    """`mcrl render`: video of a saved run's policy (default RUN_DIR/videos/policy_step<STEP>.<fmt>)."""
+               out: Path | str | None = None, fps: float = FPS, progress: bool = False) -> Path:
+    """`mcrl render`: video of a saved run's policy (default RUN_DIR/videos/policy_step<STEP>.<fmt>); `progress`:
+    count the rendered episodes on stderr."""
     if episodes < 1:
         raise MCRLError(f"--episodes {episodes}: render at least one episode")
     if fmt not in ("mp4", "gif"):
@@ -109,7 +114,12 @@ def render_run(run_dir: Path | str, episodes: int = 1, fmt: str = "mp4", checkpo
     cfg, agent, state = load_policy(run_dir, checkpoint_step)
     step = int(checkpoint.load_meta(checkpoint.find(Path(run_dir), checkpoint_step))["step"])
     out = Path(out) if out else rundir.video_path(run_dir, "policy", step, fmt)
-    path, _, _ = render_policy(cfg, agent, state, out, episodes=episodes, fmt=fmt, fps=fps)
+    bar = progress_bar(episodes, "rendering", unit="episode", enabled=progress)
+    try:
+        path, _, _ = render_policy(cfg, agent, state, out, episodes=episodes, fmt=fmt, fps=fps, bar=bar)
+    finally:
+        if bar is not None:
+            bar.close()
     return path
 
 
