@@ -1,34 +1,11 @@
-"""The stable-baselines3 side of ``benchmarks/parity_sb3.py``: SAC+HER at an mcrl preset's settings,
-writing an mcrl-format run directory.
+"""The stable-baselines3 side of ``parity_sb3.py`` and ``transplant.py``: SB3's SAC+HER at an mcrl preset's
+settings (``ParitySAC``: SB3's gradient step, also summing mcrl's per-step diagnostics), evaluated with mcrl's own
+episode runner and seeds, writing an mcrl-format run directory and resumable checkpoints
+(``RUN_DIR/sb3_checkpoints/``). Run it through ``python benchmarks/parity_sb3.py sb3 ...``; the design and its
+checks are in docs/parity.md.
 
-Nothing here imports torch or stable-baselines3 at module import time, so ``parity_sb3.py compare`` (and
-``--help``) work without the ``bench`` extra, and ``OMP_NUM_THREADS`` can still be set before torch loads.
-
-Per-gradient-step diagnostics
------------------------------
-mcrl logs, per log interval, the mean over the interval's gradient steps of ``critic_loss``,
-``actor_loss``, ``ent_coef`` (the value used in that step, read before its own update), ``ent_coef_loss``
-and ``q_mean`` (the mean over both critics of Q(obs, action) on that step's replay batch). To get the same
-quantities from SB3, :class:`ParitySAC` overrides ``SAC.train``: it is a re-implementation of SB3 2.9.2's
-``SAC.train`` (same operations, same order, so the same random numbers are drawn: the run is the run stock
-SB3 would make, checked bit for bit by ``parity_sb3.py check``), which additionally sums those values per
-gradient step. The alternative, SB3's logger values plus a Q estimate on one extra replay sample in a
-callback, would give ``q_mean`` on a different batch than the one trained on and would draw extra random
-numbers from the replay sampler (changing the run); so the subclass is used.
-
-Checkpoints and resume
-----------------------
-A 150,000-step SB3 run takes 2-3 hours on one core, longer than a machine may live, so a run writes a
-checkpoint every ``checkpoint_every`` steps, at the next episode end, into ``RUN_DIR/sb3_checkpoints/``
-(``keep_checkpoints`` of them; not ``checkpoints/``, which mcrl's own tools read): SB3's ``model.save`` (policy,
-optimisers, entropy coefficient, step counters, the last observation), SB3's ``save_replay_buffer`` and
-``state.pkl`` (torch's, numpy's and Python's global random states; the MuJoCo integration state, goal and
-random generator of the training and evaluation environments; the recorder's counters). ``--resume`` loads
-the newest one and continues; the resumed run is the uninterrupted run bit for bit (``parity_sb3.py
-check-resume`` verifies it, and finds differences when the random states or the environments' MuJoCo states
-are not restored). The whole integration state goes back, the solver's warm start (``qacc_warmstart``)
-included, which a reset does not clear. These files are pickles written by this script: load only your own.
-A finished run deletes its checkpoints (``sb3_model.zip`` keeps the final model).
+Nothing here imports torch or stable-baselines3 at import time, so ``parity_sb3.py compare`` and ``--help`` work
+without the ``bench`` extra, and ``OMP_NUM_THREADS`` can still be set before torch loads.
 """
 from __future__ import annotations
 
@@ -44,10 +21,6 @@ DIAGNOSTICS = ("actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean
 
 #: Where an SB3 run keeps its checkpoints (mcrl's tools read ``checkpoints/`` as their own format).
 CHECKPOINTS = "sb3_checkpoints"
-
-# mcrl's evaluation seeding (mcrl.run.trainer): stream 1, episode index round * 100_003 + i. Using the same
-# seeds makes both systems' evaluation rounds play the same start states and goals.
-_EVAL_STREAM = 1
 
 
 class UnsupportedConfig(Exception):
@@ -244,33 +217,59 @@ def build_model(cfg, sac_class=None):
     return cls(policy, env, **sac_kwargs(cfg, her)), her
 
 
+def sb3_policy(model, env):
+    """SB3's deterministic policy as an ``act`` of ``mcrl.run.evaluation.run_episode``: mcrl's flat policy input
+    -> an action in [-1, 1].
+
+    The input goes back into the environment's observation layout (SB3 casts it to float32, as mcrl's flattening
+    did), and SB3's action on the Box comes back to [-1, 1] in float64; ``run_episode`` maps it onto the Box again,
+    exactly for Fetch's bounds of +-1 (and any of +-2**k), so ``env.step`` gets SB3's own action bit for bit.
+    """
+    import numpy as np
+    from mcrl.envs import GOAL_KEYS
+
+    space, box = env.observation_space, env.action_space
+    low, high = np.asarray(box.low, np.float64), np.asarray(box.high, np.float64)
+    if hasattr(space, "spaces"):  # a goal Dict, flattened as observation | achieved_goal | desired_goal
+        shapes = [space.spaces[k].shape for k in GOAL_KEYS]
+        cuts = np.cumsum([int(np.prod(sh)) for sh in shapes])[:-1]
+
+        def unflatten(flat):
+            return {k: part.reshape(sh) for k, sh, part in zip(GOAL_KEYS, shapes, np.split(flat, cuts))}
+    else:
+        def unflatten(flat):
+            return flat.reshape(space.shape)
+
+    def act(flat: np.ndarray) -> np.ndarray:
+        action, _ = model.predict(unflatten(flat), deterministic=True)
+        return 2.0 * (np.asarray(action, np.float64) - low) / (high - low) - 1.0
+
+    return act
+
+
 class Evaluator:
-    """Deterministic episodes of an SB3 model on a separate environment, seeded as mcrl seeds its own."""
+    """Deterministic episodes of an SB3 model on a separate environment: mcrl's evaluation rounds (the same
+    episode seeds, episode runner and summary), so both systems play the same start states and goals."""
 
     def __init__(self, cfg):
+        import numpy as np
         from mcrl.envs import make_env
 
+        # mcrl.run.evaluation imports jax, whose import draws from numpy's global random state, the one SB3
+        # samples replay batches from: put it back, so that evaluating changes nothing in training.
+        state = np.random.get_state()
+        from mcrl.run import evaluation
+
+        np.random.set_state(state)
+        self.evaluation = evaluation
         self.cfg = cfg
         self.env = make_env(cfg)
 
     def run(self, model, round_index: int, episodes: int) -> dict:
-        import numpy as np
-        from mcrl.envs import episode_seed, success_of
-
-        returns, successes = [], []
-        for i in range(episodes):
-            obs, _ = self.env.reset(seed=episode_seed(self.cfg.seed, _EVAL_STREAM, round_index * 100_003 + i))
-            done, ret, info = False, 0.0, {}
-            while not done:
-                action, _ = model.predict(obs, deterministic=True)
-                obs, r, term, trunc, info = self.env.step(action)
-                ret += float(r)
-                done = term or trunc
-            returns.append(ret)
-            s = success_of(info)  # read at the episode's last step
-            successes.append(np.nan if s is None else s)
-        succ = float(np.mean(successes)) if not np.all(np.isnan(successes)) else None
-        return {"success_rate": succ, "mean_return": float(np.mean(returns)), "episodes": episodes}
+        ev, act = self.evaluation, sb3_policy(model, self.env)
+        seeds = [ev.eval_episode_seed(self.cfg.seed, round_index, i) for i in range(episodes)]
+        results = [ev.run_episode(self.env, act, self.cfg.action_scale, seed) for seed in seeds]
+        return ev.summarise([r for r, _ in results], [s for _, s in results])
 
     def close(self) -> None:
         self.env.close()

@@ -26,8 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))  # parity_step, _sb3 (benchmarks is not a package)
+from _common import REPO_ROOT
 
 GROUPS = ("actor", "critic", "critic_target", "log_ent_coef")
 OPTIMISED = ("actor", "critic", "log_ent_coef")
@@ -125,7 +124,7 @@ def is_mcrl_checkpoint(path: Path) -> bool:
 def read_mcrl(ckpt: Path) -> tuple[Learning, dict]:
     """(Learning, the run's config dict) of an mcrl checkpoint directory; an older format (commit 83e6d8d's)
     is converted first by scripts/migrate_checkpoint.py into a temporary copy."""
-    sys.path.insert(0, str(HERE.parent / "scripts"))
+    sys.path.insert(0, str(REPO_ROOT / "scripts"))
     from migrate_checkpoint import MigrationError, format_of, migrate
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,76 +1,16 @@
-"""Speed benchmark: mcrl against stable-baselines3 and against the machine's matmul roofline.
+"""Speed benchmark: mcrl against stable-baselines3 (SAC+HER on FetchPush at the thesis' settings) and against
+the machine's float32 matmul roofline.
 
-Run from the repository root (one process does everything)::
+    python benchmarks/bench.py [--steps N] [--repeats R] [--skip-sb3] [--skip-mcrl] [--torch-threads N]
+                               [--json out.json]        # or: make bench
 
-    python benchmarks/bench.py [--steps N] [--repeats R] [--skip-sb3] [--json out.json]
-
-It prints one Markdown table to stdout (progress goes to stderr) and, with ``--json``, writes
-every number plus a description of the system to a JSON file.
-
-What is measured, and how
--------------------------
-1. **Roofline** (:func:`roofline_gflops`). Float32 matrix multiplies in JAX, jitted, on every
-   core that JAX's CPU backend uses: 256-row batches times 256x256, 512x512 and 1024x1024
-   weight matrices (the shapes of an MLP layer at batch 256) and square 512, 1024 and 2048
-   matmuls. Each jitted call chains enough multiplies (``x <- x @ w`` with an orthogonal ``w``
-   so values neither blow up nor go denormal) to take a few milliseconds, so dispatch overhead
-   does not count. For each shape the repetitions are timed separately (each at least
-   ``min_time_s``) and the median GFLOP/s is kept; the roofline is the best of those medians.
-   It is the highest matmul throughput this machine sustains from JAX, not a datasheet peak.
-
-2. **stable-baselines3 SAC+HER** (:func:`sb3_steps_per_s`) on ``FetchPush-v4`` with the
-   thesis' settings (actor and both critics 3x256, batch 256, lr 3e-4, tau 0.005, gamma 0.99,
-   buffer 1,000,000, ``HerReplayBuffer`` strategy ``future`` with 4 sampled goals, train_freq 1,
-   gradient_steps 1, learning_starts 1000, automatic entropy coefficient). One ``learn()`` call
-   runs the 1000 random warm-up steps, then ``warmup_grad_steps`` learning steps that are not
-   timed (allocator and caches settle), then the thread probe (below); a second
-   ``learn(reset_num_timesteps=False)`` call continues the same run for ``repeats`` windows of
-   ``steps`` env steps each.
-   Per window:
-
-   * steps/s = env steps / wall time of the window (each env step is followed by one
-     gradient step, so this is the training loop's throughput);
-   * ms/grad step = time inside ``SAC.train`` minus the replay sampling in it (so: the
-     critic, actor and entropy-coefficient updates and the Polyak update) / gradient steps,
-     which matches mcrl's "jitted update alone";
-   * ms/replay sample (JSON only) = ``HerReplayBuffer.sample`` (with HER relabelling and the
-     reward recomputation) / gradient steps;
-   * ms/env step = time inside ``collect_rollouts`` (policy forward pass, ``env.step``,
-     replay-buffer insert) / env steps.
-
-   The three add up to almost all of 1000 / (steps/s); the rest is SB3's loop bookkeeping.
-   Reported values are medians over the windows. FLOPs of one gradient step are counted once
-   after the timed windows with ``torch.utils.flop_counter.FlopCounterMode`` (matmul FLOPs,
-   forward and backward, which is what the roofline measures too).
-   torch's intra-op thread count (``torch.set_num_threads``) is chosen by a probe: after the
-   warm-up, a few gradient steps (at most 3 s) are timed with 1 thread and with all usable
-   cores, and the faster count is used for the timed windows. (One thread won on an idle
-   2-core AMD Zen 3 machine and on a busy 2-core Intel Sapphire Rapids one; two threads won
-   on the latter when idle.) ``--torch-threads N`` skips the probe.
-
-3. **mcrl** (:func:`mcrl_numbers`) for the presets ``fetchpush-sac`` and
-   ``fetchpush-sacmc-0.2``, delegated to ``harness.measure_training``, which returns
-   the medians ``steps_per_s`` (the real training loop), ``ms_per_grad_step`` (the jitted
-   update alone, without replay sampling), ``ms_per_env_step`` and ``grad_step_gflop`` (XLA's
-   cost analysis of the compiled update: all ops, not only matmuls, so it can differ a little
-   from torch's matmul-only count for the same network sizes). If mcrl cannot be imported the
-   table says ``mcrl: not available`` and the other parts still run.
-
-Derived columns: achieved GFLOP/s = grad_step_gflop / (ms_per_grad_step / 1000);
-roofline ms/grad step = grad_step_gflop / roofline GFLOP/s * 1000; "% of roofline" (JSON key
-``vs_roofline``, a fraction) = achieved GFLOP/s / roofline GFLOP/s, which equals roofline time
-/ actual time; "mcrl/SB3" (JSON key ``vs_sb3``) = mcrl steps/s / SB3 SAC steps/s. Both mcrl
-presets are compared with SB3 SAC, the only SB3 system measured (SB3 has no SAC-MC).
-
-The machine may be shared: the load average at the start and end is printed with the table.
-Under contention, two torch threads can collapse (OpenMP threads wait on each other), which
-the thread probe then shows and avoids.
+Prints one Markdown table (progress goes to stderr); ``--json`` writes every number and a description of the
+system. What each column measures, and how, is in docs/performance.md ("How bench.py measures").
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import platform
@@ -81,7 +21,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+from _common import cpuinfo, log, md_head, md_row, usable_cores, write_json
 
 #: mcrl presets benchmarked, in table order.
 MCRL_PRESETS = ("fetchpush-sac", "fetchpush-sacmc-0.2")
@@ -99,16 +39,6 @@ SB3_SAC_KWARGS: dict[str, Any] = dict(
     policy_kwargs=dict(net_arch=[256, 256, 256]),
 )
 SB3_HER_KWARGS: dict[str, Any] = dict(n_sampled_goal=4, goal_selection_strategy="future")
-
-
-def _usable_cores() -> int:
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -191,7 +121,7 @@ def roofline_gflops(
             "gflops_all": rates,
             "matmuls_per_call": k,
         }
-        _log(f"roofline {name:>20}: {per_shape[name]['gflops_median']:8.1f} GFLOP/s")
+        log(f"roofline {name:>20}: {per_shape[name]['gflops_median']:8.1f} GFLOP/s")
 
     best = max(per_shape, key=lambda s: per_shape[s]["gflops_median"])
     return {
@@ -301,7 +231,7 @@ def sb3_steps_per_s(
     env_id: str = "FetchPush-v4",
     seed: int = 0,
 ) -> dict:
-    """Training-loop speed of SB3 SAC+HER at the thesis' settings (see the module docstring).
+    """Training-loop speed of SB3 SAC+HER at the thesis' settings (docs/performance.md, "How bench.py measures").
 
     Runs ``learning_starts`` (1000) random steps and ``warmup_grad_steps`` untimed learning
     steps. With ``torch_threads=None`` it then times a few gradient steps with each candidate
@@ -319,7 +249,7 @@ def sb3_steps_per_s(
 
     gym.register_envs(gymnasium_robotics)
     previous_threads = torch.get_num_threads()
-    candidates = sorted({1, _usable_cores()}) if torch_threads is None else [torch_threads]
+    candidates = sorted({1, usable_cores()}) if torch_threads is None else [torch_threads]
     try:
         torch.set_num_threads(candidates[0])
         env = gym.make(env_id)
@@ -334,7 +264,7 @@ def sb3_steps_per_s(
             **SB3_SAC_KWARGS,
         )
         start = SB3_SAC_KWARGS["learning_starts"] + warmup_grad_steps
-        _log(
+        log(
             f"sb3: {SB3_SAC_KWARGS['learning_starts']} random + {warmup_grad_steps} warm-up "
             f"learning steps, torch thread candidates {candidates}, "
             f"then {repeats} x {steps} timed steps"
@@ -345,7 +275,7 @@ def sb3_steps_per_s(
         probe: dict[int, float] = {}
         if len(candidates) > 1:
             probe = _probe_torch_threads(model, candidates, max_calls=40, max_s=3.0)
-            _log("sb3 thread probe (ms/grad step): "
+            log("sb3 thread probe (ms/grad step): "
                  + ", ".join(f"{t} thread(s) {v:.1f}" for t, v in probe.items()))
         threads = min(probe, key=probe.get) if probe else candidates[0]
         torch.set_num_threads(threads)
@@ -358,7 +288,7 @@ def sb3_steps_per_s(
         windows = []
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             windows.append(_window_stats(model, lo, hi))
-            _log(
+            log(
                 f"sb3 window ({threads} thread(s)): {windows[-1]['steps_per_s']:.1f} steps/s, "
                 f"{windows[-1]['ms_per_grad_step']:.2f} ms/grad, "
                 f"{windows[-1]['ms_per_replay_sample']:.2f} ms/replay sample, "
@@ -417,16 +347,6 @@ def mcrl_numbers(preset: str, steps: int, repeats: int) -> dict:
     return measure_training(preset=preset, steps=steps, repeats=repeats)
 
 
-def _ensure_mcrl_on_path() -> None:
-    """Let ``import mcrl`` find this checkout's ``src/`` when mcrl is not installed."""
-    try:
-        import mcrl  # noqa: F401
-    except ImportError:
-        src = REPO_ROOT / "src"
-        if (src / "mcrl").is_dir():
-            sys.path.insert(0, str(src))
-
-
 # --------------------------------------------------------------------------------------------
 # Report
 # --------------------------------------------------------------------------------------------
@@ -434,17 +354,9 @@ def _ensure_mcrl_on_path() -> None:
 
 def system_info() -> dict:
     """Hardware and software versions, for the JSON report and the table's caption."""
-    cpu = platform.processor() or "unknown"
-    flags: set[str] = set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                break
-    except OSError:
-        pass
+    info = cpuinfo()
+    cpu = info.get("model name") or platform.processor() or "unknown"
+    flags = set(info.get("flags", "").split())
     versions = {}
     for mod in ("jax", "jaxlib", "flax", "optax", "numpy", "gymnasium", "gymnasium_robotics",
                 "mujoco", "torch", "stable_baselines3"):
@@ -455,7 +367,7 @@ def system_info() -> dict:
     return {
         "cpu": cpu,
         "cpu_count": os.cpu_count(),
-        "cpus_usable": _usable_cores(),
+        "cpus_usable": usable_cores(),
         "simd": sorted(f for f in flags if f in {"avx2", "fma", "avx512f", "amx_tile"}),
         "platform": platform.platform(),
         "python": platform.python_version(),
@@ -503,7 +415,7 @@ def markdown_table(report: dict) -> str:
     )
     cols = ["system", "steps/s", "ms/grad step", "ms/env step", "GFLOP/grad step",
             "GFLOP/s achieved", "roofline ms/grad step", "% of roofline", "mcrl/SB3"]
-    lines = [head, "", "| " + " | ".join(cols) + " |", "|" + " --- |" * len(cols)]
+    lines = [head, "", *md_head(cols)]
     for row in report["rows"]:
         if row.get("status") != "ok":
             cells = [row["system"], row.get("status", "—")] + ["—"] * (len(cols) - 2)
@@ -519,7 +431,7 @@ def markdown_table(report: dict) -> str:
                 _fmt(row.get("vs_roofline"), ".1%"),
                 _fmt(row.get("vs_sb3"), ".2f"),
             ]
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(md_row(cells))
     return "\n".join(lines)
 
 
@@ -547,14 +459,14 @@ def main(argv: list[str] | None = None) -> int:
     }
     failed = False
 
-    _log("== roofline")
+    log("== roofline")
     report["roofline"] = roofline_gflops(repeats=args.roofline_repeats)
 
     sb3_row: dict[str, Any] = {"system": "SB3 SAC+HER (torch)"}
     if args.skip_sb3:
         sb3_row["status"] = "skipped"
     else:
-        _log("== stable-baselines3")
+        log("== stable-baselines3")
         try:
             sb3 = sb3_steps_per_s(args.steps, args.repeats, args.sb3_warmup_grad_steps,
                                   args.torch_threads)
@@ -562,30 +474,29 @@ def main(argv: list[str] | None = None) -> int:
             sb3_row["system"] = f"SB3 SAC+HER (torch {sb3['torch_threads']} thread(s))"
         except ImportError as e:
             sb3_row["status"] = f"sb3: not available ({e.name or e})"
-            _log(sb3_row["status"])
+            log(sb3_row["status"])
         except Exception as e:  # keep going: the other parts are still worth reporting
             failed = True
             sb3_row.update(status=f"error: {type(e).__name__}", error=traceback.format_exc())
-            _log(sb3_row["error"])
+            log(sb3_row["error"])
     report["rows"].append(sb3_row)
 
-    _ensure_mcrl_on_path()
     for preset in MCRL_PRESETS:
         row: dict[str, Any] = {"system": f"mcrl {preset}"}
         if args.skip_mcrl:
             row["status"] = "skipped"
         else:
-            _log(f"== mcrl {preset}")
+            log(f"== mcrl {preset}")
             try:
                 row.update(mcrl_numbers(preset, args.steps, args.repeats), status="ok")
             except ImportError as e:
                 row["status"] = "mcrl: not available"
                 row["error"] = repr(e)
-                _log(f"mcrl: not available ({e!r})")
+                log(f"mcrl: not available ({e!r})")
             except Exception as e:
                 failed = True
                 row.update(status=f"error: {type(e).__name__}", error=traceback.format_exc())
-                _log(row["error"])
+                log(row["error"])
         report["rows"].append(row)
 
     roof_g = report["roofline"]["gflops"]
@@ -598,9 +509,8 @@ def main(argv: list[str] | None = None) -> int:
 
     print(markdown_table(report))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2, default=str) + "\n")
-        _log(f"wrote {args.json}")
+        write_json(args.json, report, default=str)
+        log(f"wrote {args.json}")
     return 1 if failed else 0
 
 

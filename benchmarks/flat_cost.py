@@ -5,22 +5,20 @@ thesis-sized gradient step with an empty vs a full normaliser history.
                                    [--json out.json]
 
 The long run uses the real training loop (`mcrl.run.trainer.train`) with the preset's 1,000,000-transition
-buffer and 400,000-value normaliser history. `--hidden` shrinks the networks so that a 150,000-step run fits
-in minutes: with small networks the per-step cost of everything that could grow with the run (replay
-buffer, HER sampling, normaliser, logging, checkpoints) is a larger share of the step, so growth would show
-more, not less. The gradient step at the thesis' sizes is measured separately, with the normaliser empty
-and full, since that is the one part whose cost the history's size could affect.
+buffer and 400,000-value normaliser history, its networks shrunk to `--hidden` so that it fits in minutes; the
+gradient step at the thesis' sizes is timed separately with the normaliser's history empty and full. Prints a
+Markdown table; why it is measured this way, and the results: docs/performance.md, "Flat cost over a run".
 """
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import statistics
 import sys
 import tempfile
 from pathlib import Path
 
+from _common import write_json
 from harness import measure_update
 from mcrl.config import resolve_config
 from mcrl.run.rundir import read_rows
@@ -68,7 +66,7 @@ def main() -> int:
           f"| last 10% | {lr['last_10pct_steps_per_s']:.1f} steps/s ({lr['last_over_first']:.3f}x) |\n"
           f"| peak resident memory (1,000,000-transition buffer) | {lr['peak_rss_gib']:.2f} GiB |")
     if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=2))
+        write_json(a.json, out)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Speed measurements of mcrl's own training (used by benchmarks/bench.py).
+"""Speed measurements of mcrl's own training (used by bench.py, flat_cost.py and scaling.py).
 
 - steps/s: the real training loop (`mcrl.run.trainer.train`), read off the per-interval wall-clock times
   in metrics.csv after warm-up; one interval per repetition, median reported.

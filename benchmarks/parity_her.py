@@ -1,42 +1,28 @@
 """HER sampling, side by side: mcrl's ``ReplayBuffer`` against stable-baselines3's ``HerReplayBuffer``.
 
-Both buffers get the same episodes (random actions on the preset's environment, ``--episodes`` of them), then
-each draws ``--batches`` batches of ``batch_size`` transitions (its own random numbers). The batches are
-compared by what a critic learns from:
-
-* the batch's mean reward (mean and standard error over batches) and its relabelled share (205 of 256 in mcrl,
-  204 in stable-baselines3, by construction; the batch mean moves by that share times the reward gap);
-* the mean reward of relabelled and of original transitions, each with its standard error;
-* where in its episode a sampled transition lies (steps 0..T-1, as a histogram; uniform over the stored
-  transitions on both sides if both sample finished episodes uniformly);
-* for relabelled transitions, the offset of the goal's source step from the transition's own step, over the
-  transitions whose goal matches exactly one step's next achieved goal in the episode (an object that never
-  moves makes every step's achieved goal the same; those give no offset). ``future`` draws the offset uniformly
-  from 0..T-1-t on both sides, if both follow it.
-
-A difference in any of these would be a difference in the data the two SAC implementations train on. Run from
-the repository root (needs ``pip install -e ".[bench]"``; about 30 s)::
+Both buffers get the same ``--episodes`` random-action episodes of the preset's environment, then each draws
+``--batches`` batches of ``batch_size`` transitions with its own random numbers. Compared: the batches' mean
+reward and relabelled share; the mean reward of relabelled and of original transitions (with standard errors);
+where in its episode a sampled transition lies; and, for relabelled transitions, the offset of the goal's source
+step from the transition's own (over the transitions whose goal matches exactly one step's next achieved goal).
+Run from the repository root (needs ``pip install -e ".[bench]"``)::
 
     python benchmarks/parity_her.py [--preset fetchpush-sac] [--episodes 200] [--batches 400] [--seed 0]
+                                    [--alpha 0.001]
 
 Prints one JSON object (with each histogram pair's total-variation distance and the p-value of a chi-square test
 of homogeneity); exit status 1 if the mean reward of relabelled or of original transitions differs by more than 4
-standard errors (of the difference) or a histogram test gives p < ``--alpha`` (default 0.001). See docs/parity.md.
+standard errors (of the difference) or a histogram test gives p < ``--alpha``. Results: docs/parity.md, "HER
+sampling, side by side".
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-from pathlib import Path
 
+import _common  # noqa: F401  (this checkout's src/ when mcrl is not installed)
 import numpy as np
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-try:
-    import mcrl  # noqa: F401
-except ImportError:
-    sys.path.insert(0, str(REPO_ROOT / "src"))
 
 
 def _episodes(env, n: int, seed: int) -> list[list[tuple]]:

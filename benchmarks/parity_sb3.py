@@ -34,21 +34,11 @@ import os
 import sys
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_sb3.py
+from _common import md_head, md_row
 
 #: Steps of the per-system summary.
 SUMMARY_STEPS = (15_000, 25_000, 45_000)
 SYSTEM_COLOURS = {"mcrl": "tab:blue", "sb3": "tab:orange"}
-
-
-def _ensure_mcrl_on_path() -> None:
-    try:
-        import mcrl  # noqa: F401
-    except ImportError:
-        src = REPO_ROOT / "src"
-        if (src / "mcrl").is_dir():
-            sys.path.insert(0, str(src))
 
 
 def _die(msg: str) -> int:
@@ -62,7 +52,6 @@ def _die(msg: str) -> int:
 def cmd_sb3(args: argparse.Namespace) -> int:
     # Before torch (and numpy's BLAS) load: one OpenMP thread per process unless the caller said otherwise.
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    _ensure_mcrl_on_path()
     from mcrl.config import Config, parse_set, resolve_config
     from mcrl.errors import MCRLError
 
@@ -115,7 +104,6 @@ def cmd_sb3(args: argparse.Namespace) -> int:
 
 def cmd_check_resume(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _ensure_mcrl_on_path()
     import tempfile
 
     import _sb3
@@ -128,7 +116,6 @@ def cmd_check_resume(args: argparse.Namespace) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    _ensure_mcrl_on_path()
     import _sb3
 
     res = _sb3.check_train_equivalence(steps=args.steps, seed=args.seed)
@@ -224,7 +211,7 @@ def _tables(systems: dict[str, list[RunData]], every: int) -> list[str]:
         head = ["step"]
         for sysname, runs in systems.items():
             head += [f"{_system_name(sysname, runs)} {r.label}" for r in runs] + [f"{_system_name(sysname, runs)} mean"]
-        lines += [f"### {title}", "", "| " + " | ".join(head) + " |", "|" + " ---: |" * len(head)]
+        lines += [f"### {title}", "", *md_head(head, "---:")]
         for step in steps:
             cells = [f"{step:,}"]
             any_value = False
@@ -235,14 +222,14 @@ def _tables(systems: dict[str, list[RunData]], every: int) -> list[str]:
                 cells += [_fmt(v, col) for v in vals]
                 cells.append(_fmt(m, col) + (f" (n={n})" if m is not None and n < len(runs) else ""))
             if any_value:
-                lines.append("| " + " | ".join(cells) + " |")
+                lines.append(md_row(cells))
         lines.append("")
     return lines
 
 
 def _summary(systems: dict[str, list[RunData]]) -> list[str]:
     head = ["system", "step", "runs with data", "mean Q", "entropy coef.", "critic loss", "eval success"]
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    lines = md_head(head)
     for sysname, runs in systems.items():
         name = _system_name(sysname, runs)
         for step in SUMMARY_STEPS:
@@ -254,7 +241,7 @@ def _summary(systems: dict[str, list[RunData]]) -> list[str]:
                 vals.append(_fmt(m, col))
                 ns.append(n)
             row.append(f"{max(ns)} of {len(runs)}")
-            lines.append("| " + " | ".join(row + vals) + " |")
+            lines.append(md_row(row + vals))
         finals = [r.final for r in runs if r.final and r.final.get("success_rate") is not None]
         if finals:
             m, n = _mean([float(f["success_rate"]) for f in finals])
@@ -270,15 +257,15 @@ def _summary(systems: dict[str, list[RunData]]) -> list[str]:
 
 def _runs_list(systems: dict[str, list[RunData]]) -> list[str]:
     head = ["system", "seed", "run directory", "last step", "finished", "steps/s (last row)", "torch threads"]
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    lines = md_head(head)
     for sysname, runs in systems.items():
         for r in runs:
             last = r.metrics.get(max(r.metrics)) if r.metrics else None
             sps = last.get("steps_per_s") if last else None
-            lines.append("| " + " | ".join([
+            lines.append(md_row([
                 _system_name(sysname, runs), str(r.seed), f"`{r.dir}`", f"{r.last_step:,}",
                 "yes" if r.finished else "no", f"{sps:.1f}" if sps else "—",
-                str(r.peer.get("torch_threads", "—")) if sysname == "sb3" else "—"]) + " |")
+                str(r.peer.get("torch_threads", "—")) if sysname == "sb3" else "—"]))
     return lines
 
 
@@ -379,7 +366,7 @@ def _peaks(systems: dict[str, list[RunData]], after: int) -> list[str]:
     entropy-inflated start, where every critic rises and falls), each with its step, and the last values."""
     head = ["system", "seed", "last step", f"peak mean Q after {after:,} (step)", "peak entropy coef. (step)",
             "peak critic loss (step)", "last mean Q / entropy coef. / critic loss"]
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    lines = md_head(head)
     for sysname, runs in systems.items():
         for r in runs:
             cells = [_system_name(sysname, runs), r.label, f"{r.last_step:,}"]
@@ -390,12 +377,11 @@ def _peaks(systems: dict[str, list[RunData]], after: int) -> list[str]:
             steps, _ = r.series("q_mean")
             cells.append(" / ".join(_fmt(r.value(c, steps[-1]), c) for c in ("q_mean", "ent_coef", "critic_loss"))
                          if steps else "—")
-            lines.append("| " + " | ".join(cells) + " |")
+            lines.append(md_row(cells))
     return lines
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    _ensure_mcrl_on_path()
     if args.every < 1:
         return _die(f"--every {args.every}: give a positive number of steps")
     systems: dict[str, list[RunData]] = {}

@@ -1,63 +1,34 @@
 """One SAC gradient step, side by side: mcrl's ``Agent.update`` against stable-baselines3's ``SAC.train``.
 
-Given identical network weights, the identical replay batch and identical Gaussian noise, do the two systems
-compute the same critic loss, actor loss, entropy-coefficient loss, gradients and post-update parameters?
-The script
-
-1. builds the mcrl agent from a preset (``mcrl.config.resolve_config``) and an SB3 ``SAC("MlpPolicy")`` of the
-   same sizes and hyperparameters on a stand-in environment with a flat Box observation of mcrl's policy-input
-   size (no HER buffer needed: this is about one update on a given batch);
-2. copies mcrl's initial actor, critics, target critics and log entropy coefficient into SB3's torch modules
-   and checks that both give the same forward outputs;
-3. collects a realistic batch (a random-action rollout of the preset's environment, HER-"future" relabelled
-   for goal environments, rewards recomputed by the environment), plus a "saturating" variant in which the
-   actor's mean-head bias is set to +-``--sat-mean`` so the pre-tanh actions are |u| ~ 5-10;
-4. reproduces mcrl's two noise arrays on the host (``key, k_pi, k_next = split(state.key, 3)``;
-   ``normal(k_pi)`` for the current-observation sample, ``normal(k_next)`` for the next-observation one) and
-   makes SB3's ``Normal.rsample`` use exactly those, in SB3's order (current first, then next; asserted to be
-   consumed exactly twice per step);
-5. runs ``--steps`` gradient steps (default 3; the first is the one-step check, the later ones exercise
-   Adam's bias correction and the Polyak average) on both sides and compares losses, gradients (Adam's first
-   moment after step 1 is 0.1 * gradient on both sides) and parameters per group;
-6. in three modes: ``as-is`` (mcrl's exact tanh correction vs SB3's ``log(1 - tanh(u)^2 + 1e-6)``),
-   ``sb3-exact`` (SB3 patched to mcrl's exact correction) and ``mcrl-eps`` (mcrl patched, inside this process
-   only, to SB3's epsilon correction, with tanh and 1 - tanh^2 + 1e-6 evaluated in torch's float32 way,
-   which that formula is sensitive to near saturation: see `mcrl_eps_log_prob`). The last two must agree to
-   float32 round-off; the first measures the size of the one known algorithmic difference on a realistic and
-   on a saturating batch;
-7. records SB3's optimiser order (entropy coefficient, critics, actor) and shows that both systems use the
-   pre-update entropy coefficient in the losses.
-
-Run from the repository root (needs ``pip install -e ".[bench]"``; about a minute on one CPU thread)::
+Given identical weights (mcrl's, copied into SB3's torch modules), the identical replay batch (a random-action
+rollout of the preset's environment, HER-relabelled; or, with ``--checkpoint``, a trained run's weights and a
+batch of its buffer) and identical Gaussian noise (mcrl's, handed to SB3's ``Normal.rsample``), both take
+``--steps`` gradient steps; losses, gradients and parameters are compared per group, in three modes: ``as-is``,
+``sb3-exact`` (SB3 given mcrl's exact tanh correction) and ``mcrl-eps`` (mcrl given SB3's epsilon correction, in
+this process only), on the batch and on a saturating variant (the actor's mean-head bias set to
++-``--sat-mean``). Run from the repository root (needs ``pip install -e ".[bench]"``; one thread each side)::
 
     python benchmarks/parity_step.py [--preset fetchpush-sac] [--seed 0] [--steps 3] [--sat-mean 7]
-                                     [--set key=value ...] [--json out.json]
+                                     [--set key=value ...] [--checkpoint RUN_DIR[/checkpoints/step_N]]
+                                     [--json out.json]
 
-Exit status 1 if ``sb3-exact`` or ``mcrl-eps`` disagree beyond the tolerances below. See docs/parity.md.
+Exit status 1 if ``sb3-exact`` or ``mcrl-eps`` disagree beyond the tolerances below. The method in full and the
+results: docs/parity.md, "One gradient step, side by side".
 """
 from __future__ import annotations
 
-import os
+import _common
 
-# One thread on each side, set before jax / torch load (the machine is shared with long experiments).
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
+_common.one_thread()  # one thread on each side, before jax / torch load (the machine is shared)
 
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
-import json  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
-try:
-    import mcrl  # noqa: F401
-except ImportError:
-    sys.path.insert(0, str(REPO_ROOT / "src"))
 
 MODES = ("as-is", "sb3-exact", "mcrl-eps")
 #: Tolerances of the pass/fail check (modes sb3-exact and mcrl-eps). float32 round-off of a 256-sample
@@ -255,8 +226,8 @@ def load_into_sb3(model, state, layout) -> None:
     import torch
 
     actor_l, critic_l = layout
-    tree_to_torch(state.actor, model.actor, actor_l, stacked=False)
-    tree_to_torch(state.critic, model.critic, critic_l, stacked=True)
+    tree_to_torch(state.pi.params, model.actor, actor_l, stacked=False)
+    tree_to_torch(state.q.params, model.critic, critic_l, stacked=True)
     tree_to_torch(state.q_target, model.critic_target, critic_l, stacked=True)
     with torch.no_grad():
         model.log_ent_coef.copy_(torch.tensor([float(state.ent.params)]))
@@ -697,11 +668,10 @@ def main(argv=None) -> int:
                "log-probability is the only difference" if not bad else f"FAIL: {bad}")
     print(f"\n{verdict}  ({time.time() - t0:.0f} s)")
     if args.json:
-        args.json.write_text(json.dumps({"preset": args.preset, "seed": args.seed, "steps": args.steps,
-                                         "sb3": stable_baselines3.__version__, "torch": torch.__version__,
-                                         "jax": jax.__version__, "forward_max_abs_diff": fwd,
-                                         "saturation": sat, "results": results, "pass": not bad,
-                                         "failures": bad}, indent=2))
+        _common.write_json(args.json, {"preset": args.preset, "seed": args.seed, "steps": args.steps,
+                                       "sb3": stable_baselines3.__version__, "torch": torch.__version__,
+                                       "jax": jax.__version__, "forward_max_abs_diff": fwd, "saturation": sat,
+                                       "results": results, "pass": not bad, "failures": bad})
     return 0 if not bad else 1
 
 

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 from pathlib import Path
+
+from _common import write_json
 
 WALL_CLOCK = ("time_s", "steps_per_s")
 EVAL_COLUMNS_IN_METRICS = ("eval_success_rate", "eval_mean_return")
@@ -87,8 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {col}: max |diff| {c['max_abs_diff']:.3g}, first at step {c['first_diff_step']}")
     print("identical" if res["identical"] else "DIFFERENT")
     if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(res, indent=1) + "\n")
+        write_json(a.out, res, indent=1)
     return 0 if res["identical"] else 1
 
 

@@ -8,12 +8,10 @@ GFLOP/s. Width applies to the actor, the critics and the MC models (depths stay 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 
+from _common import write_json
 from harness import measure_update
-
 from mcrl.config import parse_set
 
 
@@ -40,7 +38,7 @@ def main() -> int:
         print(f"| {r['batch']} | {r['width']} | {r['ms_per_grad_step']:.2f} | {r['grad_step_gflop']:.3f} | "
               f"{r['gflops_per_s']:.0f} |")
     if a.json:
-        Path(a.json).write_text(json.dumps(rows, indent=2))
+        write_json(a.json, rows)
     return 0
 
 

@@ -1,10 +1,5 @@
-"""Whose instability is it? Continue one run's learning state under mcrl and under stable-baselines3 (SB3).
-
-Issue 26, item 3. An mcrl SAC run whose critics leave the settled band, and an SB3 run that settles, differ in
-code (mcrl's or SB3's) and in random streams. Taking the learning state at a checkpoint (weights, target critics,
-Adam states, entropy coefficient, the replay buffer with its episodes) and continuing it under each system with
-several fresh random streams separates the two: if SB3 continues mcrl's state into divergence as often as mcrl
-does, the state, not the code, is the cause.
+"""Continue one run's learning state (weights, target critics, Adam states, entropy coefficient, replay buffer)
+under mcrl and under stable-baselines3 (SB3), with fresh random streams: whose instability is it?
 
 Subcommands (run from the repository root; needs the ``bench`` extra)::
 
@@ -17,43 +12,28 @@ SB3 parity checkpoint (``sb3_checkpoints/step_<N>/`` of ``benchmarks/parity_sb3.
 looked up in it and up to two directories above, or given with ``--config``).
 
 ``continue`` writes DIR as a run directory in mcrl's format (config.json, metrics.csv with a row every 1,000
-steps, eval.csv, final_eval.json) plus transplant.json (origin, system, stream, steps, versions). Stream K sets
-every random stream of the continuation through one seed (``stream_seed(K)``): for mcrl the config's seed (action
-noise, environment reset seeds), the update's noise key (``Agent.init(seed)``'s) and the host RNG (replay
-sampling, HER goals); for SB3 ``set_random_seed(seed)`` (torch, numpy, Python, the action space) and the
-environment's first reset. The same K gives the same continuation on the same CPU model, another K another one.
-The environment restarts with a fresh episode (the origin's unfinished episode, if any, is closed in the buffer;
-checkpoints are taken at episode ends). Evaluation is off during the continuation; a 10-episode evaluation ends it.
-The mcrl system runs through the library's own files and CLI: DIR gets the state as today's checkpoint and
-``mcrl train --resume DIR`` continues it. The SB3 system is ``_sb3.py``'s ParitySAC, whose rows have mcrl's
-definitions (q_mean: the mean over both critics of Q on each gradient step's training batch, averaged over the
-interval's gradient steps). See docs/parity.md, "Whose instability? The transplant test".
+steps, eval.csv, final_eval.json) plus transplant.json (origin, system, stream, steps, versions); stream K seeds
+every random stream of the continuation (``stream_seed(K)``). mcrl continues through ``mcrl train --resume DIR``,
+SB3 through ``_sb3.py``'s ParitySAC. ``check`` verifies that the state moves exactly both ways and that one
+gradient step from it agrees; ``summary`` tabulates continuations. What moves, how each system continues, and
+the results: docs/parity.md, "Whose instability? The transplant test".
 """
 from __future__ import annotations
 
-import os
+import _common
 
-# One thread each (the machine is shared with long experiments); set before jax / torch load.
-os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
+_common.one_thread()  # the machine is shared with long experiments; before jax / torch load
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import json  # noqa: E402
-import math  # noqa: E402
+import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO / "benchmarks"))
-try:
-    import mcrl  # noqa: F401
-except ImportError:
-    sys.path.insert(0, str(REPO / "src"))
 
 from _transplant import TransplantError, is_mcrl_checkpoint  # noqa: E402
 from mcrl.errors import MCRLError  # noqa: E402
@@ -144,12 +124,9 @@ def versions() -> dict:
                                                            capture_output=True, text=True).stdout.strip())
         except (OSError, subprocess.CalledProcessError):
             pass
-    try:
-        info = open("/proc/cpuinfo").read().splitlines()
-        field = lambda name: next(ln.split(":", 1)[1].strip() for ln in info if ln.split(":")[0].strip() == name)  # noqa: E731
-        out["cpu"] = f"{field('model name')} (family {field('cpu family')} model {field('model')})"
-    except (OSError, StopIteration):
-        pass
+    cpu = _common.cpu_label()
+    if cpu is not None:
+        out["cpu"] = cpu
     return out
 
 
@@ -170,8 +147,7 @@ def continue_mcrl(origin: Origin, cfg, out: Path, learning) -> None:
     from _transplant import write_mcrl
 
     write_mcrl(out, learning, cfg)
-    env = {**os.environ, "OMP_NUM_THREADS": "1",
-           "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+    env = {**os.environ, **_common.ONE_THREAD}
     with open(out / "train.log", "w") as log:
         subprocess.run([sys.executable, "-m", "mcrl.cli", "train", "--resume", str(out), "--no-progress"],
                        env=env, stdout=log, stderr=subprocess.STDOUT, check=True)
@@ -225,14 +201,14 @@ def cmd_continue(args) -> int:
             "origin_step": learning.step, "system": args.system, "stream": args.stream, "seed": cfg.seed,
             "steps": args.steps, "fresh_episode": True, "versions": versions(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
-    (out / "transplant.json").write_text(json.dumps(info, indent=2) + "\n")
+    _common.write_json(out / "transplant.json", info)
     t0 = time.time()
     if args.system == "mcrl":
         continue_mcrl(origin, cfg, out, learning)
     else:
         continue_sb3(origin, cfg, out, learning, model)
     info.update(finished=time.strftime("%Y-%m-%dT%H:%M:%S"), wall_s=round(time.time() - t0, 1))
-    (out / "transplant.json").write_text(json.dumps(info, indent=2) + "\n")
+    _common.write_json(out / "transplant.json", info)
     print(f"{origin.label} continued under {args.system}, stream {args.stream}: {out / 'metrics.csv'}")
     return 0
 
@@ -274,7 +250,7 @@ def cmd_check(args) -> int:
               + "; Adam moments rel L2 " + ", ".join(f"{g} {v:.1e}" for g, v in r["adam_rel_l2"].items()))
     print("PASS" if res["pass"] else f"FAIL: {res['not_exact']} {res['step_failures']}")
     if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=2, default=float) + "\n")
+        _common.write_json(args.json, res, default=float)
     return 0 if res["pass"] else 1
 
 

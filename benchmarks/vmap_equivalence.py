@@ -8,10 +8,8 @@ one per backend, e.g. (the check in docs/performance.md)::
     mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 3 --backend vmap --exp EXP/vmap
     mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 3 --backend local --exp EXP/local
 
-The first gradient steps of a vmapped run equal the run alone to float tolerance (tests/test_vmap.py); after
-thousands of steps float reassociation has grown into different trajectories, so runs are not compared step for
-step. The question is whether the learning outcome differs systematically. Per run (matched by alpha and seed
-between the backends) the script reads the final evaluation's success and return and the area under the
+Runs are not compared step for step (float reassociation makes their trajectories part; docs/performance.md,
+"Whole runs"), but by outcome. Per run (matched by alpha and seed between the backends) the script reads the final evaluation's success and return and the area under the
 evaluation curve (mean success over the evaluations during training, which separates fast from slow learners
 even when every run ends at 1.0), and prints, per configuration and over all pairs, the mean of each backend and
 the paired difference vmap - local with a 95% bootstrap interval over the pairs. An interval containing 0 means
@@ -20,17 +18,14 @@ no systematic difference was found at this number of pairs; its width says how l
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "src"))
-
-from mcrl.analysis.stats import bootstrap_ci  # noqa: E402
-from mcrl.run.rundir import read_json, read_rows  # noqa: E402
+from _common import write_json
+from mcrl.analysis.stats import bootstrap_ci
+from mcrl.run.rundir import read_json, read_rows
 
 N_BOOT = 10_000
 
@@ -105,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {name} | {s['n']} | {m} | {s['vmap']:.3f} | {s['local']:.3f} | "
                   f"{s['diff']:+.3f} [{s['ci'][0]:+.3f}, {s['ci'][1]:+.3f}] |")
     if args.json:
-        args.json.write_text(json.dumps(res, indent=2))
+        write_json(args.json, res)
     return 0
 
 

@@ -30,12 +30,10 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "src"))
-
-from mcrl.config import resolve_config  # noqa: E402
-from mcrl.run.rundir import read_rows  # noqa: E402
-from mcrl.sweep.worker import cpu_count, thread_env  # noqa: E402
+from _common import write_json
+from mcrl.config import resolve_config
+from mcrl.run.rundir import read_rows
+from mcrl.sweep.worker import cpu_count, thread_env
 
 WARMUP = 300  # steps before the window: learning starts at 100, the first update compiles
 
@@ -188,8 +186,8 @@ def main() -> int:
                 print(f"  {k:>8}: {v:7.1f} steps/s  {v / med['local']:.2f}x")
             sys.stdout.flush()
     if a.json:
-        Path(a.json).write_text(json.dumps({"preset": a.preset, "steps": a.steps, "cores": cpu_count(),
-                                            "layout": a.layout, "results": results}, indent=2))
+        write_json(a.json, {"preset": a.preset, "steps": a.steps, "cores": cpu_count(), "layout": a.layout,
+                            "results": results})
     return 0
 
 
