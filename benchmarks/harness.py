@@ -34,9 +34,9 @@ def _flops(compiled) -> float:
     return float(cost.get("flops", float("nan")))
 
 
-def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: dict | None = None,
-                   full_history: bool = False) -> dict:
-    """ms per jitted gradient step (median over `repeats` blocks of `calls`) and its GFLOP.
+def update_timer(preset: str, overrides: dict | None = None, full_history: bool = False):
+    """(time_block, GFLOP): `time_block(calls)` runs `calls` jitted gradient steps of `preset` (what the training
+    loop compiles) on replay batches of real transitions and returns ms per step; compiled and warmed up here.
 
     With `full_history`, the normaliser starts as late in a run: a full window, or `total_steps` steps' worth
     of values for the whole-run history.
@@ -62,17 +62,26 @@ def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: d
             state = state._replace(norm=normaliser.push(state.norm, values))
     step = jax.jit(lambda s, d, b: train_step(agent, s, d, b), donate_argnums=(0, 1))  # what the loop compiles
     gflop = _flops(jax.jit(agent.update).lower(state, batches[0]).compile()) / 1e9
-    diag = diagnostics.init()
-    for i in range(10):
-        state, diag = step(state, diag, batches[i % 8])
-    jax.block_until_ready(state)
-    times = []
-    for _ in range(repeats):
+    carry = [state, diagnostics.init()]
+
+    def time_block(calls: int) -> float:
+        s, d = carry
         t = time.perf_counter()
         for i in range(calls):
-            state, diag = step(state, diag, batches[i % 8])
-        jax.block_until_ready(state)
-        times.append((time.perf_counter() - t) / calls * 1e3)
+            s, d = step(s, d, batches[i % 8])
+        jax.block_until_ready(s)
+        carry[:] = [s, d]
+        return (time.perf_counter() - t) / calls * 1e3
+
+    time_block(10)
+    return time_block, gflop
+
+
+def measure_update(preset: str, repeats: int = 5, calls: int = 100, overrides: dict | None = None,
+                   full_history: bool = False) -> dict:
+    """ms per jitted gradient step (median over `repeats` blocks of `calls`) and its GFLOP."""
+    time_block, gflop = update_timer(preset, overrides, full_history)
+    times = [time_block(calls) for _ in range(repeats)]
     return {"ms_per_grad_step": statistics.median(times), "ms_per_grad_step_all": times, "grad_step_gflop": gflop}
 
 

@@ -191,15 +191,18 @@ def test_a_resume_carries_the_models_state_exactly(kind, tmp_path):
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("kind", KINDS)
 def test_the_reward_trains_fetchreach(kind, tmp_path):
-    """SAC+HER with each intrinsic reward at weight 0.2 solves FetchReach (small networks, 5,000 steps): an
-    evaluation of 10 episodes reaches 0.9, and the intrinsic reward was live (raw values positive, normalised
-    reward inside [-1, 0]). Measured on seed 0: see docs/intrinsic.md."""
+    """SAC+HER with each intrinsic reward at weight 0.2 solves FetchReach: an evaluation of 10 episodes reaches
+    0.9 within 7,000 steps (3x128 networks, initial entropy coefficient 0.1: about 3x cheaper than the thesis'
+    sizes), and the intrinsic reward was live (raw values positive, normalised reward inside [-1, 0]).
+    Measured on seed 0 (AMD Zen 3): plain SAC 1.0 at 5,000 steps; RND 1.0 at 5,500, ICM 1.0 at 5,500,
+    Disagreement see docs/intrinsic.md; the 7,000 steps leave a margin of 1,500."""
     from mcrl.run.rundir import read_rows
     from mcrl.run.trainer import train
 
-    cfg = resolve_config("fetchreach-sac", {"intrinsic": kind, "mc_alpha": 0.2, "hidden_sizes": [128, 128],
-                                            "mc_hidden_sizes": [128, 128], "total_steps": 5000, "eval_every": 1000,
-                                            "eval_episodes": 10, "checkpoint_every": 100_000})
+    cfg = resolve_config("fetchreach-sac", {"intrinsic": kind, "mc_alpha": 0.2, "hidden_sizes": [128, 128, 128],
+                                            "mc_hidden_sizes": [128, 128], "ent_coef_init": 0.1,
+                                            "total_steps": 7000, "eval_every": 500, "eval_episodes": 10,
+                                            "checkpoint_every": 100_000})
     run = train(cfg, tmp_path / kind, progress=False)
     evals = read_rows(run / "eval.csv")
     assert max(e["success_rate"] for e in evals) >= 0.9, evals

@@ -28,7 +28,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, moments_init, moments_update, standardise
+from mcrl.algo.intrinsic import Raw, Sizes, moments_init, moments_update, standardise
 from mcrl.algo.networks import ACTIVATIONS, dense_kwargs
 
 MEMBERS = 5  # the paper's ensemble size (its code's num_dynamics)
@@ -58,13 +58,9 @@ class ForwardModel(nn.Module):
         return dense(self.out_dim, h)
 
 
-class Ensemble(nn.Module):
-    """MEMBERS independent forward models evaluated as one batched computation; returns (MEMBERS, batch, out)."""
-
-    width: int
-    out_dim: int
-    init_scheme: str = "torch"
-    matmul_precision: str = "float32"
+class Ensemble(ForwardModel):
+    """MEMBERS independent forward models of these sizes, evaluated as one batched computation; returns
+    (MEMBERS, batch, out)."""
 
     @nn.compact
     def __call__(self, x, a):
@@ -74,14 +70,8 @@ class Ensemble(nn.Module):
 
 
 @dataclass(frozen=True)
-class Disagreement:
+class Disagreement(Sizes):
     """The ensemble for states of `state_dim` and actions of `action_dim`; params {"ensemble"}, untrained {"obs"}."""
-
-    state_dim: int
-    action_dim: int
-    width: int = 256
-    init_scheme: str = "torch"
-    matmul_precision: str = "float32"
 
     @property
     def ensemble(self) -> Ensemble:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw
+from mcrl.algo.intrinsic import Raw, Sizes
 from mcrl.algo.networks import Stack
 
 FEATURES = 288  # the paper's feature size (4 stride-2 convs of 32 filters on 42x42 frames: 3 x 3 x 32)
@@ -33,15 +33,9 @@ BETA = 0.2  # the paper's weight of the forward loss against the inverse loss
 
 
 @dataclass(frozen=True)
-class ICM:
+class ICM(Sizes):
     """ICM's networks for states of `state_dim` and actions of `action_dim`; params {"encoder", "inverse",
     "forward"}, nothing untrained."""
-
-    state_dim: int
-    action_dim: int
-    width: int = 256
-    init_scheme: str = "torch"
-    matmul_precision: str = "float32"
 
     @property
     def encoder(self) -> Stack:

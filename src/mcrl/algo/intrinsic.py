@@ -1,8 +1,8 @@
 """The intrinsic rewards beside MC: one interface, chosen by the config key `intrinsic` (docs/intrinsic.md).
 
 `mc` is the thesis' MC reward (`mcrl.algo.mc`, its own path in `mcrl.algo.sac`, kept bit for bit as it was). The
-others each live in their own module (`mcrl.algo.rnd`, `.icm`, `.disagreement`) as a frozen dataclass built
-from (state_dim, action_dim, width, init_scheme, matmul_precision), with the same small pure interface:
+others each live in their own module (`mcrl.algo.rnd`, `.icm`, `.disagreement`) as a frozen dataclass of
+`Sizes` (state_dim, action_dim, width, init_scheme, matmul_precision), with the same small pure interface:
 
     models.init(key) -> (params, untrained)
         `params` are trained by Adam (`mc_lr`, one step per gradient step); `untrained` is what no gradient trains
@@ -20,12 +20,24 @@ mc_alpha (`mcrl.algo.sac.Agent.update`). `key` is used by Disagreement only (its
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-__all__ = ["Moments", "Raw", "moments_init", "moments_update", "standardise"]
+__all__ = ["Moments", "Raw", "Sizes", "moments_init", "moments_update", "standardise"]
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """What every intrinsic reward's models are built from (`mcrl.algo.sac.Agent.intrinsic_net`)."""
+
+    state_dim: int
+    action_dim: int
+    width: int = 256  # hidden layers (the widest of mc_hidden_sizes)
+    init_scheme: str = "torch"
+    matmul_precision: str = "float32"
 
 
 class Raw(NamedTuple):

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, moments_init, moments_update, standardise
+from mcrl.algo.intrinsic import Raw, Sizes, moments_init, moments_update, standardise
 from mcrl.algo.networks import Stack
 
 EMBEDDING = 512  # the paper's output size of both networks
@@ -33,14 +33,9 @@ CLIP = 5.0  # normalised inputs are clipped to [-5, 5]
 
 
 @dataclass(frozen=True)
-class RND:
-    """RND's networks for states of `state_dim`; params {"predictor"}, untrained {"target", "obs"}."""
-
-    state_dim: int
-    action_dim: int  # unused: RND looks at the next state alone
-    width: int = 256
-    init_scheme: str = "torch"
-    matmul_precision: str = "float32"
+class RND(Sizes):
+    """RND's networks for states of `state_dim` (`action_dim` unused: RND looks at the next state alone); params
+    {"predictor"}, untrained {"target", "obs"}."""
 
     @property
     def target(self) -> Stack:
