@@ -89,7 +89,9 @@ def test_group_with_another_intrinsic_reward_matches_runs_alone(tmp_path, kind):
     group_dirs = train_group(cfgs, [tmp_path / f"g{i}" for i in range(2)])
     for i, cfg in enumerate(cfgs):
         alone = train(cfg, tmp_path / f"alone{i}", progress=False)
-        _assert_same_state(group_dirs[i], alone, rtol=1e-5)
+        # 1e-4, not 1e-5: Adam turns the round-off of a vmapped matmul in a near-zero gradient into a step of
+        # its own size (measured: ICM's inverse-model output kernel, 3.7e-5 of its largest entry after 30 steps)
+        _assert_same_state(group_dirs[i], alone, rtol=1e-4)
         g_rows, a_rows = read_rows(group_dirs[i] / "metrics.csv"), read_rows(alone / "metrics.csv")
         assert [r["step"] for r in g_rows] == [r["step"] for r in a_rows] and len(g_rows) == 13
         for g, a in zip(g_rows, a_rows):
