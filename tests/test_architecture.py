@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src"
-MAX_LINES = 450  # "about 400"
+MAX_LINES = 400  # issue 27: no module over 400 lines
 
 
 def _modules() -> dict[str, Path]:
@@ -55,6 +55,14 @@ def test_no_import_cycles():
         if m not in state:
             visit(m, [m])
     assert not cycles, cycles
+
+
+def test_the_training_loop_does_not_import_the_video_package():
+    """video/ renders runs (it imports run/); the loop gets its video step passed in, so no arrow goes back up."""
+    modules = _modules()
+    up = {m: sorted(n for n in _imports(p, m, modules) if n.split(".")[:2] == ["mcrl", "video"])
+          for m, p in modules.items() if m.startswith("mcrl.run")}
+    assert not any(up.values()), up
 
 
 def test_no_module_is_huge():
