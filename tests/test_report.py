@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -130,7 +131,7 @@ def test_markdown_report_values(experiment: Path, tmp_path: Path) -> None:
     assert "0 seeds (add its experiment with `--with DIR`)." in thesis
 
     mcs = _section(md, "MC reward and raw KL during training")
-    assert _row(mcs, "`alpha=0.2`")[2:] == ["-0.2500", "1.1000"]  # last logged values at step 1000
+    assert _row(mcs, "`alpha=0.2`")[2:] == ["mc", "-0.2500", "1.1000"]  # last logged values at step 1000
     assert "`alpha=0`" not in mcs.split("|", 1)[1]  # SAC has no MC data
 
     missing = _section(md, "Missing and unfinished runs")
@@ -440,3 +441,76 @@ def test_critics_against_the_soft_q_bound(tmp_path: Path) -> None:
     assert "`a0-s2`" not in sec  # no q_mean logged: not checked
     assert _row(sec, "`alpha=0` | 1 of 2")[1] == "1 of 2 (0.50 [0.01, 0.99])"
     assert _row(sec, "`alpha=0.2` | 0 of 1")[1:] == ["0 of 1 (0.00 [0.00, 0.97])", "p = 1.0000 vs `alpha=0`"]
+
+
+# ------------------------------------------------------------------ other intrinsic rewards (issue 29)
+
+
+def test_other_intrinsic_rewards_against_sac_and_sac_mc(tmp_path: Path) -> None:
+    # 6 seeds each. RND is above every SAC seed and interleaved with SAC-MC; Disagreement is interleaved with SAC
+    # and below every SAC-MC seed.
+    arms = {"alpha=0": (0.0, "mc", [0.10, 0.15, 0.20, 0.25, 0.30, 0.35]),
+            "alpha=0.2": (0.2, "mc", [0.60, 0.65, 0.70, 0.75, 0.80, 0.85]),
+            "rnd": (0.2, "rnd", [0.62, 0.67, 0.72, 0.77, 0.82, 0.87]),
+            "disagreement": (0.2, "disagreement", [0.11, 0.16, 0.21, 0.26, 0.31, 0.36])}
+    exp, runs = tmp_path / "exp", []
+    for key, (alpha, intrinsic, finals) in arms.items():
+        for seed, s in enumerate(finals):
+            name = f"{key}-s{seed}"
+            # SAC-MC's config.json has no `intrinsic` key, as the reproduction's (written before it existed)
+            _write_run(exp / "runs" / name, alpha, seed, (s, -50 * (1 - s)),
+                       config={} if intrinsic == "mc" else {"intrinsic": intrinsic})
+            runs.append({"name": name, "config_key": key, "seed": seed})
+    (exp / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": runs}))
+    assert [(g.key, g.intrinsic) for g in load_experiment(exp).configs] == [
+        ("alpha=0", "mc"), ("alpha=0.2", "mc"), ("disagreement", "disagreement"), ("rnd", "rnd")]
+
+    md = write_report(exp, tmp_path / "rep").read_text()
+    sec = _section(md, "Other intrinsic rewards against SAC and SAC-MC")
+    # vs SAC, one-sided, Holm over the two arms: RND above all 6 SAC seeds, p = 1/924; Disagreement lowered by
+    # the thesis' +0.23 is below SAC at ranks 1-5 and 7 of 12: p = 2/924, adjusted x2
+    rnd_sac = _row(sec, "`rnd` | `alpha=0`")
+    assert rnd_sac[2:7] == ["6 / 6", "one-sided X > Y", "0.0011 (0.0022)", "1.0000 (1.0000)", "**better than SAC**"]
+    assert rnd_sac[7].startswith("1.000 [")
+    dis_sac = _row(sec, "`disagreement` | `alpha=0`")
+    assert dis_sac[3] == "one-sided X > Y" and dis_sac[5:7] == ["0.0022 (0.0043)", "**short of SAC +0.23**"]
+    # vs SAC-MC, two-sided: Disagreement below every seed, p = 2/924 (adjusted x2); RND interleaved
+    dis_mc = _row(sec, "`disagreement` | `alpha=0.2`")
+    assert dis_mc[3:7] == ["two-sided", "0.0022 (0.0043)", "-", "**worse than SAC-MC**"]
+    rnd_mc = _row(sec, "`rnd` | `alpha=0.2`")
+    assert rnd_mc[6] == "**not decidable with this many seeds**" and float(rnd_mc[4].split()[0]) > 0.3
+    assert all(0.0 < float(_row(sec, r)[9]) <= 1.0 for r in ("`rnd` | `alpha=0`", "`disagreement` | `alpha=0.2`"))
+    # RND at mc_alpha 0.2 is not the thesis' SAC-MC: its claim and table see only the MC arm
+    thesis = _section(md, "Comparison with the thesis (FetchPush)")
+    assert "`rnd`" not in thesis and "`disagreement`" not in thesis and "X = `alpha=0.2`" in thesis
+    # the effect-size table reads RND against SAC-MC by SAC-MC's name, not as "SAC"
+    poi = _row(_section(md, "IQM and probability of improvement"), "`rnd` > `alpha=0.2`")
+    assert poi[3].startswith("no clear difference")
+    assert _row(_section(md, "IQM and probability of improvement"), "`rnd` > `alpha=0`")[3].startswith("better than SAC")
+    assert _row(_section(md, "MC reward and raw KL during training"), "`rnd`")[2] == "rnd"
+
+    # the same arms with too few seeds: no verdict, said so
+    small = tmp_path / "small"
+    sweep = [r for r in runs if int(r["name"].rsplit("-s", 1)[1]) < 2]
+    for r in sweep:
+        shutil.copytree(exp / "runs" / r["name"], small / "runs" / r["name"])
+    (small / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": sweep}))
+    sec = _section(write_report(small, tmp_path / "rep2").read_text(), "Other intrinsic rewards against SAC and SAC-MC")
+    assert _row(sec, "`rnd` | `alpha=0`")[6].startswith("not decidable with this many seeds (too few seeds")
+    rows = [ln for ln in sec.splitlines() if ln.startswith("| `")]
+    assert len(rows) == 4 and not any("better" in r or "worse" in r or "short" in r for r in rows)
+
+
+def test_arms_that_differ_only_in_the_reward_are_named_by_algorithm(tmp_path: Path) -> None:
+    exp = _experiment(tmp_path / "exp", {0.0: FINALS["alpha=0"], 0.2: FINALS["alpha=0.2"]})
+    arms, runs = tmp_path / "arms", []
+    for intrinsic in ("rnd", "disagreement"):
+        for seed, final in enumerate(FINALS["alpha=0.2"]):
+            name = f"intrinsic={intrinsic}-s{seed}"
+            _write_run(arms / "runs" / name, 0.2, seed, final, config={"intrinsic": intrinsic})
+            runs.append({"name": name, "config_key": f"intrinsic={intrinsic}", "seed": seed})
+    (arms / "sweep.json").write_text(json.dumps({"preset": "fetchpush-sacmc-0.2", "runs": runs}))
+    # two sweeps: their keys no longer name the arms; the settings differ only in mc_alpha and intrinsic
+    assert [g.key for g in load_experiment(arms, [exp]).configs] == [
+        "SAC", "SAC+Disagreement 0.2", "SAC+RND 0.2", "SAC-MC 0.2"]
+    assert [g.key for g in load_experiment(arms).configs] == ["intrinsic=disagreement", "intrinsic=rnd"]

@@ -68,9 +68,15 @@ def mcrl_groups(exp: Experiment) -> list[ConfigGroup]:
 
 
 def sac_and_mc(exp: Experiment) -> tuple[list[ConfigGroup], list[ConfigGroup]]:
-    """mcrl's finished SAC (mc_alpha 0) and SAC-MC (mc_alpha > 0) configurations."""
+    """mcrl's finished SAC (mc_alpha 0) and SAC-MC (mc_alpha > 0, intrinsic=mc) configurations."""
     with_data = [g for g in mcrl_groups(exp) if g.finished and g.mc_alpha is not None]
-    return [g for g in with_data if g.mc_alpha == 0.0], [g for g in with_data if g.mc_alpha > 0.0]
+    return ([g for g in with_data if g.mc_alpha == 0.0],
+            [g for g in with_data if g.mc_alpha > 0.0 and g.intrinsic == "mc"])
+
+
+def other_intrinsic(exp: Experiment) -> list[ConfigGroup]:
+    """mcrl's finished configurations that mix in another intrinsic reward than MC (RND, ICM, Disagreement)."""
+    return [g for g in mcrl_groups(exp) if g.finished and (g.mc_alpha or 0.0) > 0.0 and g.intrinsic != "mc"]
 
 
 def reference_sac(exp: Experiment) -> list[ConfigGroup]:

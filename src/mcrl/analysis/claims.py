@@ -104,7 +104,8 @@ def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[st
     ours_all = [*mcrl_groups(exp), *(g for g in exp.configs if g.peer)]
     for alpha, th in t["by_alpha"].items():
         label = "SAC" if alpha == 0 else f"SAC-MC alpha={alpha:g}"
-        ours = [g for g in ours_all if g.mc_alpha is not None and math.isclose(g.mc_alpha, alpha)]
+        ours = [g for g in ours_all if g.mc_alpha is not None and math.isclose(g.mc_alpha, alpha)
+                and (alpha == 0 or g.intrinsic == "mc")]  # RND & co. at 0.2 are not the thesis' SAC-MC
         if not ours:
             rows.append([label, f"{th['success_mean']:.2f}", "not in this sweep", f"{th['success_var']:.2f}", "",
                          f"{th['mean_reward']:.1f}", "not in this sweep"])

@@ -127,13 +127,19 @@ class ConfigGroup:
     runs: list[Run]
     peer: str | None = None  # "stable-baselines3 2.9.2" for a reference arm trained by another system
 
+    def _setting(self, key: str) -> Any:
+        """The first value of ``key`` that its runs' config.json or sweep overrides give; None if none does."""
+        return next((src[key] for r in self.runs for src in (r.config, r.overrides) if src.get(key) is not None), None)
+
     @property
     def mc_alpha(self) -> float | None:
-        for r in self.runs:
-            for src in (r.config, r.overrides):
-                if src.get("mc_alpha") is not None:
-                    return float(src["mc_alpha"])
-        return None
+        v = self._setting("mc_alpha")
+        return None if v is None else float(v)
+
+    @property
+    def intrinsic(self) -> str:
+        """The intrinsic reward mc_alpha mixes in; "mc" where no run names one (configs older than the key)."""
+        return str(self._setting("intrinsic") or "mc")
 
     @property
     def total_steps(self) -> int | None:
@@ -213,7 +219,6 @@ def _extra_runs(path: Path) -> list[Run]:
         return [_read_run(path, path.name, None, None, {}, path.parent)]
     def run_dirs(d: Path) -> list[Path]:
         return [x for x in sorted(d.iterdir()) if _is_run_dir(x)] if d.is_dir() else []
-
     # its run directories, or those of its runs/ (an experiment's layout without sweep.json, e.g. a reference arm)
     subdirs = run_dirs(path) or run_dirs(path / RUNS)
     if not subdirs:
@@ -315,6 +320,13 @@ def _varying(settings: Sequence[dict[str, Any]]) -> list[str]:
     return sorted(vary, key=lambda k: (k != "mc_alpha", k))
 
 
+def _algorithm(settings: dict[str, Any]) -> str:
+    """'SAC', 'SAC-MC 0.2', 'SAC+RND 0.2': the algorithm of settings that differ from others only in the reward."""
+    alpha, reward = float(settings.get("mc_alpha") or 0.0), str(settings.get("intrinsic") or "mc")
+    name = {"mc": "-MC", "rnd": "+RND", "icm": "+ICM"}.get(reward, f"+{reward.capitalize()}")
+    return "SAC" if alpha == 0.0 else f"SAC{name} {alpha:g}"
+
+
 def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
     """Group runs into configurations: equal settings (and, for reference arms, the same system and
     version), whatever their sweep labels say. Labels are the user's (``--with DIR=LABEL``) where given; else
@@ -358,6 +370,8 @@ def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
         vary = _varying([settings[k] for k in keys if k in settings])
         for k, sk in zip(keys, sweep_keys):
             parts = ", ".join(f"{v}={_fmt(settings[k].get(v))}" for v in vary) if k in settings else ""
+            if k in settings and not fam and set(vary) <= {"mc_alpha", "intrinsic"}:
+                parts = _algorithm(settings[k])  # only the reward differs: name the algorithm
             user = k[2]
             if user:  # the user's name; the settings too when one directory holds several configurations
                 several = sum(kk[2] == user for kk in keys) > 1

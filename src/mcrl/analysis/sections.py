@@ -15,11 +15,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mcrl.analysis.cells import (CONF, SEED, code, interval, mean_ci, name, num, pvalue, sac_and_mc,
-                                 sample_var, steps, too_few)
+from mcrl.analysis.cells import (CONF, SEED, code, interval, mean_ci, name, num, other_intrinsic, pvalue,
+                                 sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.claims import thesis_section
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
 from mcrl.analysis.experiment import ConfigGroup, Experiment, Run
+from mcrl.analysis.intrinsic import intrinsic_section
 from mcrl.analysis.hypothesis import fisher_exact, holm, rank_sum_test
 from mcrl.analysis.markdown import Block, Bullets, Figure, Heading, Paragraph, Table
 from mcrl.analysis.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
@@ -46,11 +47,13 @@ def _source(runs: Sequence[Run]) -> str:
 
 
 def _comparisons(exp: Experiment) -> list[tuple[ConfigGroup, ConfigGroup]]:
-    """(X, Y) pairs compared: each SAC-MC configuration with each SAC one, and mcrl's SAC with each
-    finished reference arm."""
+    """(X, Y) pairs compared: each SAC-MC configuration with each SAC one, each configuration with another
+    intrinsic reward with each SAC and each SAC-MC one, and mcrl's SAC with each finished reference arm."""
     sac, mc = sac_and_mc(exp)
+    others = other_intrinsic(exp)
     peers = [g for g in exp.configs if g.peer and g.finished]
-    return [(x, y) for x in mc for y in sac] + [(y, p) for y in sac for p in peers]
+    return ([(x, y) for x in mc for y in sac] + [(x, y) for x in others for y in [*sac, *mc]]
+            + [(y, p) for y in sac for p in peers])
 
 
 # ---------------------------------------------------------------------------------- sections
@@ -208,7 +211,7 @@ def _robust_stats(exp: Experiment) -> list[Block]:
     for (x, y), ((sx, mx), (sy, my)), p_s, p_m in zip(pairs, finals, p_succ, p_ret):
         ps = probability_of_improvement(sx, sy, conf=CONF, seed=SEED)
         pm = probability_of_improvement(mx, my, conf=CONF, seed=SEED)
-        yname = f"`{y.key}`" if y.peer else "SAC"
+        yname = "SAC" if any(y is g for g in sac) else f"`{y.key}`"
         rows.append([f"`{x.key}` > `{y.key}`", f"{sx.size} / {sy.size}", f"{num(ps[0], 3)} {interval(ps[1:], 3)}",
                      _reading(p_s, sx.size, sy.size, yname, ps[0] > 0.5), f"{num(pm[0], 3)} {interval(pm[1:], 3)}",
                      _reading(p_m, mx.size, my.size, yname, pm[0] > 0.5)])
@@ -216,9 +219,9 @@ def _robust_stats(exp: Experiment) -> list[Block]:
         Paragraph("Probability of improvement P(X > Y): the chance that a random finished seed of configuration X "
                   "ends above a random seed of configuration Y (ties count half; 0.5 = no difference), with "
                   "stratified-bootstrap 95% CIs (rliable's method; the overview names the implementation that ran), "
-                  "an effect size. X is each SAC-MC configuration against mcrl's SAC, and mcrl's SAC against each "
-                  f"reference arm. The reading comes from a two-sided exact rank-sum (Mann-Whitney) test at level "
-                  f"{ALPHA}, Holm-adjusted over the {len(pairs)} comparisons of each column, so the chance of "
+                  "an effect size. X is each SAC-MC configuration against mcrl's SAC, each configuration with another "
+                  "intrinsic reward against SAC and SAC-MC, and mcrl's SAC against each reference arm. The reading "
+                  f"comes from a two-sided exact rank-sum (Mann-Whitney) test at level {ALPHA}, Holm-adjusted over the {len(pairs)} comparisons of each column, so the chance of "
                   f"reading any difference where there is none stays at most {ALPHA:.0%}."),
         Table(["comparison", "seeds X / Y", "P(X > Y), success [95% CI]", "reading (success)",
                    "P(X > Y), final return [95% CI]", "reading (return)"], rows),
@@ -273,14 +276,18 @@ def _mc_section(exp: Experiment) -> list[Block]:
         v = [r.metrics[col][np.isfinite(r.metrics[col])][-1] for r in g.runs if has_data(r.metrics, col)]
         return float(np.mean(v)) if v else None
 
-    rows = [[name(g), num(g.mc_alpha, 2), *(num(last_mean(g, c), 4) for c in cols)] for g in groups]
+    rows = [[name(g), num(g.mc_alpha, 2), g.intrinsic, num(last_mean(g, cols[0]), 4),
+             num(last_mean(g, cols[1] if g.intrinsic == "mc" else "mean_raw_intrinsic"), 4)] for g in groups]
     return out + [
         Paragraph("The MC reward added to the replay batches and the raw per-transition KL (nats) it is normalised "
               "from, per configuration (mean over seeds, 95% bootstrap band), like the thesis' Fig. 4.7. As the "
               "thesis notes, the MC reward is relative (normalised by percentiles of past KL values): compare "
-              "its course over training, not its level, across tasks."),
+              "its course over training, not its level, across tasks. An arm with another intrinsic reward "
+              "(RND, ICM, Disagreement) logs its normalised reward in the same column and its own raw value "
+              "(docs/intrinsic.md): prediction error or ensemble variance, not a KL."),
         Figure("mc_reward_kl.png", figure_to_png(fig), "MC reward and raw KL from metrics.csv."),
-        Table(["configuration", "mc_alpha", "last mean MC reward (mean over seeds)", "last mean raw KL (nats)"], rows),
+        Table(["configuration", "mc_alpha", "intrinsic", "last mean intrinsic reward (mean over seeds)",
+               "last mean raw KL (nats) or raw intrinsic value"], rows),
     ]
 
 
@@ -347,5 +354,6 @@ def _critic_section(exp: Experiment) -> list[Block]:
 def build_report(exp: Experiment) -> list[Block]:
     """Every section of the report, in order."""
     return (_overview(exp) + _learning_curves(exp) + _final_table(exp) + _per_seed_table(exp)
-            + _robust_stats(exp) + _detectable(exp) + thesis_section(exp) + _critic_section(exp) + _mc_section(exp)
+            + _robust_stats(exp) + _detectable(exp) + thesis_section(exp) + intrinsic_section(exp)
+            + _critic_section(exp) + _mc_section(exp)
             + _missing_section(exp))

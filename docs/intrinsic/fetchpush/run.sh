@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Start or resume issue 29's FetchPush arms (RND, Disagreement, ICM at fetchpush-sacmc-0.2's settings, seeds 0-5)
+# from a clone of one fixed commit, in the background; compared with the reproduction's SAC and SAC-MC arms.
+#
+#   bash docs/intrinsic/fetchpush/run.sh start    # clone + install (once), then start or resume the sweep
+#     WORKERS=N runs at once (default 2, one thread each)
+#   bash docs/intrinsic/fetchpush/run.sh sync     # copy finished runs' small files here (then git commit them)
+#   bash docs/intrinsic/fetchpush/run.sh status
+#   bash docs/intrinsic/fetchpush/run.sh report   # docs/intrinsic/fetchpush/report, with SAC and SAC-MC
+#
+# COMMIT is 39e2344: SAC-MC seed 7 re-run with it for 10,000 steps gave rows identical to the reproduction's
+# (83e6d8d), so these arms and the reproduction's share one code path (docs/reproduction/fetchpush/rerun/).
+# The runs live in $WORK (default /work/repro/intrinsic); checkpoints and buffers never enter git. Finished runs
+# committed here are copied back into $WORK before starting, so a new machine resumes where git left off.
+set -euo pipefail
+HERE="$(cd "$(dirname "$0")" && pwd)"
+REPO="$(cd "$HERE/../../.." && pwd)"
+COMMIT="$(cat "$HERE/COMMIT")"
+WORK="${WORK:-/work/repro/intrinsic}"
+CODE="$WORK/mcrl-$COMMIT"
+EXP=arms
+machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
+py() { if [ -x "$CODE/.venv/bin/python" ]; then "$CODE/.venv/bin/python" "$@"; else python3 "$@"; fi; }
+
+case "${1:-status}" in
+  sync)
+    [ -d "$WORK/$EXP" ] && py "$REPO/benchmarks/sync_runs.py" "$WORK/$EXP" "$HERE/$EXP" --machine "$machine"
+    if git -C "$REPO" check-ignore -q "$HERE/$EXP"/runs/*/config.json 2>/dev/null; then
+      echo "error: git ignores the synced run files under $HERE: fix .gitignore before committing" >&2; exit 1
+    fi ;;
+  status)
+    echo "$EXP: $(ls -d "$WORK/$EXP"/runs/*/done 2>/dev/null | wc -l) finished;" \
+         "$(ls -d "$HERE/$EXP"/runs/*/done 2>/dev/null | wc -l) committed"
+    for d in "$WORK/$EXP"/runs/*/; do
+      if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
+        echo "  in progress: $(basename "$d") at step $(tail -1 "$d/metrics.csv" | cut -d, -f1)"
+      fi
+    done ;;
+  report)
+    "$REPO/.venv/bin/mcrl" report "$HERE/$EXP" --with "$REPO/docs/reproduction/fetchpush/main" --out "$HERE/report" ;;
+  start)
+    if [ ! -x "$CODE/.venv/bin/mcrl" ]; then
+      mkdir -p "$WORK"
+      git clone -q "$REPO" "$CODE" && git -C "$CODE" checkout -q "$COMMIT"
+      (cd "$CODE" && make install)
+    fi
+    if [ -d "$HERE/$EXP/runs" ]; then mkdir -p "$WORK/$EXP/runs"; cp -rn "$HERE/$EXP/runs/." "$WORK/$EXP/runs/"; fi
+    if [ -f "$HERE/$EXP/sweep.json" ] && [ ! -f "$WORK/$EXP/sweep.json" ]; then cp "$HERE/$EXP/sweep.json" "$WORK/$EXP/"; fi
+    if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
+    nohup "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" --workers "${WORKERS:-2}" --threads-per-run 1 \
+      --exp "$WORK/$EXP" --no-progress > "$WORK/$EXP.log" 2>&1 &
+    echo "started the sweep (log $WORK/$EXP.log)"
+    for _ in $(seq 120); do [ -f "$WORK/$EXP/sweep.json" ] && break; sleep 1; done
+    [ -f "$WORK/$EXP/provenance.json" ] || printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
+      "$COMMIT" "$machine" "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP" \
+      "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" \
+      > "$WORK/$EXP/provenance.json" ;;
+  *) echo "usage: $0 start|sync|status|report" >&2; exit 2 ;;
+esac
