@@ -24,12 +24,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from mcrl.analysis.cells import (CONF, SEED, interval, num, other_intrinsic, pvalue, reference_sac, sac_and_mc,
-                                 steps, too_few)
+                                 sample_var, steps, too_few)
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, NOT_REPRODUCED, REPRODUCED, claim_test, decide
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.hypothesis import holm, rank_sum_power, rank_sum_test
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
-from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT, mean_difference_ci, probability_of_improvement
+from mcrl.analysis.stats import (MIN_SEEDS_FOR_VERDICT, improvement_point, mean_difference_ci,
+                                 probability_of_improvement)
 from mcrl.analysis.thesis import THESIS_RESULTS, thesis_experiment
 
 
@@ -54,19 +55,11 @@ def effect_of_interest(exp: Experiment) -> float | None:
     return None if t is None else t["by_alpha"][0.2]["success_mean"] - t["by_alpha"][0.0]["success_mean"]
 
 
-def _sd(x: np.ndarray) -> float:
-    return float(np.std(x, ddof=1)) if x.size >= 2 else math.nan
-
-
-def _u(x: np.ndarray, y: np.ndarray) -> float:
-    """U / (n_x n_y): the share of pairs where X is above Y, ties counting half."""
-    return float(np.mean(x[:, None] > y[None, :]) + 0.5 * np.mean(x[:, None] == y[None, :]))
-
-
 def _power(x: np.ndarray, y: np.ndarray, d: float | None, level: float, alternative: str) -> float:
     if d is None or x.size == 0 or y.size == 0:
         return math.nan
-    return rank_sum_power(x.size, y.size, d, _sd(x), _sd(y), level, alternative)  # type: ignore[arg-type]
+    sd_x, sd_y = math.sqrt(sample_var(x)), math.sqrt(sample_var(y))
+    return rank_sum_power(x.size, y.size, d, sd_x, sd_y, level, alternative)  # type: ignore[arg-type]
 
 
 def against_sac(arms: list[ConfigGroup], sac: ConfigGroup, d: float | None) -> list[Comparison]:
@@ -96,7 +89,7 @@ def against_mc(arms: list[ConfigGroup], mc: ConfigGroup, d: float | None) -> lis
         sx = x.finals()[0]
         verdict = NOT_DECIDABLE
         if i in adj and adj[i] <= LEVEL:
-            verdict = "better than SAC-MC" if _u(sx, z) > 0.5 else "worse than SAC-MC"  # the rank statistic's side
+            verdict = "better than SAC-MC" if improvement_point(sx, z) > 0.5 else "worse than SAC-MC"  # U's side
         out.append(Comparison(x, mc, "two-sided", raw.get(i), adj.get(i), None, None, verdict,
                               _power(sx, z, d, LEVEL / max(len(ok), 1), "two-sided")))
     return out

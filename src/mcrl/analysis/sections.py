@@ -221,7 +221,8 @@ def _robust_stats(exp: Experiment) -> list[Block]:
                   "stratified-bootstrap 95% CIs (rliable's method; the overview names the implementation that ran), "
                   "an effect size. X is each SAC-MC configuration against mcrl's SAC, each configuration with another "
                   "intrinsic reward against SAC and SAC-MC, and mcrl's SAC against each reference arm. The reading "
-                  f"comes from a two-sided exact rank-sum (Mann-Whitney) test at level {ALPHA}, Holm-adjusted over the {len(pairs)} comparisons of each column, so the chance of "
+                  f"comes from a two-sided exact rank-sum (Mann-Whitney) test at level {ALPHA}, Holm-adjusted over "
+                  f"the {len(pairs)} comparisons of each column, so the chance of "
                   f"reading any difference where there is none stays at most {ALPHA:.0%}."),
         Table(["comparison", "seeds X / Y", "P(X > Y), success [95% CI]", "reading (success)",
                    "P(X > Y), final return [95% CI]", "reading (return)"], rows),

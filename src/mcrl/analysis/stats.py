@@ -241,6 +241,12 @@ def _poi_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return ((d > 0).mean(axis=(1, 2)) + 0.5 * (d == 0).mean(axis=(1, 2))).mean(axis=-1)
 
 
+def improvement_point(x: Any, y: Any) -> float:
+    """P(X > Y) of two 1-d samples without an interval: the Mann-Whitney U / (n m), ties counting half."""
+    a, b = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    return float(_poi_batch(a[None, :, None], b[None, :, None])[0])
+
+
 def probability_of_improvement(
     x: Any,
     y: Any,
