@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Start or resume issue 29's FetchPush arms (RND, Disagreement, ICM at fetchpush-sacmc-0.2's settings, seeds 0-5)
+# Start or resume issue 29's FetchPush arms (RND and Disagreement, then ICM; fetchpush-sacmc-0.2's settings, seeds 0-5)
 # from a clone of one fixed commit, in the background; compared with the reproduction's SAC and SAC-MC arms.
 #
 #   bash docs/intrinsic/fetchpush/run.sh start    # clone + install (once), then start or resume the sweep
@@ -47,12 +47,15 @@ case "${1:-status}" in
     if [ -d "$HERE/$EXP/runs" ]; then mkdir -p "$WORK/$EXP/runs"; cp -rn "$HERE/$EXP/runs/." "$WORK/$EXP/runs/"; fi
     if [ -f "$HERE/$EXP/sweep.json" ] && [ ! -f "$WORK/$EXP/sweep.json" ]; then cp "$HERE/$EXP/sweep.json" "$WORK/$EXP/"; fi
     if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
-    nohup "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" --workers "${WORKERS:-2}" --threads-per-run 1 \
-      --exp "$WORK/$EXP" --no-progress > "$WORK/$EXP.log" 2>&1 &
-    echo "started the sweep (log $WORK/$EXP.log)"
+    # RND and Disagreement (the issue's two arms) first, then ICM into the same directory; each skips finished runs
+    (trap '' HUP; for f in sweep.yaml sweep-icm.yaml; do
+       "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$f" --workers "${WORKERS:-2}" --threads-per-run 1 \
+         --exp "$WORK/$EXP" --no-progress || exit
+     done) >> "$WORK/$EXP.log" 2>&1 &
+    echo "started the sweep: RND and Disagreement, then ICM (log $WORK/$EXP.log)"
     for _ in $(seq 120); do [ -f "$WORK/$EXP/sweep.json" ] && break; sleep 1; done
     [ -f "$WORK/$EXP/provenance.json" ] || printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
-      "$COMMIT" "$machine" "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP" \
+      "$COMMIT" "$machine" "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" \
       > "$WORK/$EXP/provenance.json" ;;
   *) echo "usage: $0 start|sync|status|report" >&2; exit 2 ;;

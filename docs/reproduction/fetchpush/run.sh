@@ -80,7 +80,7 @@ case "$cmd" in
     fi
     # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2 3 4 5) one after another, from its own commit
     # (sb3-sac/COMMIT: the runner gained checkpoints after COMMIT). A seed already running is left alone, so a
-    # second `start` with other SB3_SEEDS runs them beside the first. Checkpoints (every 10,000 steps) live on
+    # second `start` with other SB3_SEEDS runs them beside the first, and a chain skips a seed begun or finished since. Checkpoints (every 10,000 steps) live on
     # this machine only: a run unfinished when the machine goes restarts from scratch on the next one.
     if [ "${WITH_SB3:-0}" = 1 ]; then
       SB3_COMMIT="$(cat "$HERE/sb3-sac/COMMIT")"
@@ -100,6 +100,8 @@ case "$cmd" in
         log="$WORK/sb3-s$(IFS=-; echo "${seeds[*]}").log"
         (trap '' HUP; for s in "${seeds[@]}"; do
            d="$WORK/sb3-sac/runs/sb3-sac-s$s"
+           # checked again: another start may have run or begun this seed since (no second writer on one run)
+           if [ -f "$d/done" ] || pgrep -f "parity_sb3.py sb3 .*--run-dir $d( |$)" > /dev/null; then continue; fi
            if ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1; then args=(--resume)
            else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
            "$SB3_CODE/.venv/bin/python" "$SB3_CODE/benchmarks/parity_sb3.py" sb3 "${args[@]}" \
