@@ -80,8 +80,9 @@ case "$cmd" in
     fi
     # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2 3 4 5) one after another, from its own commit
     # (sb3-sac/COMMIT: the runner gained checkpoints after COMMIT). A seed already running is left alone, so a
-    # second `start` with other SB3_SEEDS runs them beside the first, and a chain skips a seed begun or finished since. Checkpoints (every 10,000 steps) live on
-    # this machine only: a run unfinished when the machine goes restarts from scratch on the next one.
+    # second `start` with other SB3_SEEDS runs them beside the first, and a chain skips a seed begun or finished
+    # since. Checkpoints (every 10,000 steps) live on this machine only: a run unfinished when the machine goes
+    # restarts from scratch on the next one.
     if [ "${WITH_SB3:-0}" = 1 ]; then
       SB3_COMMIT="$(cat "$HERE/sb3-sac/COMMIT")"
       SB3_CODE="$WORK/mcrl-$SB3_COMMIT"
