@@ -73,7 +73,7 @@ RUN_NAMES = ["a0-s0", "a0.2-s0", "a0-s1", "a0.2-s1"]
 def test_local_sweep_writes_the_experiment_directory(local_exp):
     exp, out = local_exp
     sweep = json.loads((exp / "sweep.json").read_text())
-    assert sweep["preset"] == "fetchreach-sacmc"
+    assert sweep["preset"] == "fetchreach-sacmc" and sweep["grid"] == {"mc_alpha": [0.0, 0.2], "seed": [0, 1]}
     assert [r["name"] for r in sweep["runs"]] == RUN_NAMES  # seeds outermost
     assert [(r["config_key"], r["seed"]) for r in sweep["runs"]] == [
         ("alpha=0", 0), ("alpha=0.2", 0), ("alpha=0", 1), ("alpha=0.2", 1)]
@@ -387,6 +387,31 @@ def test_grid_file_plan_names_and_keys(tmp_path):
     assert first.config.hidden_sizes == (64, 64) and first.config.total_steps == 300
     assert [r.seed for r in plan.runs] == [3, 3, 3, 3, 5, 5, 5, 5]
     assert len({r.name for r in plan.runs}) == 8
+
+
+def test_a_second_sweep_into_the_directory_merges_its_grid_and_set(tmp_path):
+    """sweep.json's grid and set describe every run once a later sweep adds runs (issue 29's ICM phase after RND
+    and Disagreement): grid values join, a set key that differs between the sweeps becomes a grid key."""
+    from mcrl.config import resolve_config
+    from mcrl.sweep import plan_from_file
+    from mcrl.sweep.experiment import merged_grid_and_set
+    from mcrl.sweep.plan import SweepPlan
+
+    first = plan_from_file(_write(tmp_path, "preset: fetchreach-sacmc\ngrid: {intrinsic: [rnd, disagreement]}\n"
+                                            "seeds: 2\nset: {total_steps: 300, batch_size: 64}\n"))
+    old = {"grid": merged_grid_and_set(None, first)[0], "set": merged_grid_and_set(None, first)[1]}
+    assert old == {"grid": {"intrinsic": ["rnd", "disagreement"], "seed": [0, 1]},
+                   "set": {"total_steps": 300, "batch_size": 64}}
+    second = plan_from_file(_write(tmp_path, "preset: fetchreach-sacmc\ngrid: {intrinsic: [icm, rnd]}\n"
+                                             "seeds: 3\nset: {total_steps: 300, hidden_sizes: [64, 64]}\n"))
+    grid, fixed = merged_grid_and_set(old, second)
+    default = resolve_config("fetchreach-sacmc", {})  # the first sweep left hidden_sizes, the second batch_size
+    assert grid == {"intrinsic": ["rnd", "disagreement", "icm"], "seed": [0, 1, 2],
+                    "batch_size": [64, default.batch_size], "hidden_sizes": [list(default.hidden_sizes), [64, 64]]}
+    assert fixed == {"total_steps": 300}
+    # continuing the directory as it is (`mcrl sweep --exp EXP`) changes nothing
+    assert merged_grid_and_set({"grid": grid, "set": fixed}, SweepPlan("fetchreach-sacmc", grid, fixed, [], "x")) == (
+        grid, fixed)
 
 
 def test_mlflow_receives_the_runs_videos(local_exp, tmp_path):

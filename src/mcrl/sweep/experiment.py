@@ -68,6 +68,43 @@ def _merge_with_existing(plan: SweepPlan, exp: Path) -> tuple[dict | None, list[
     return old, entries
 
 
+def merged_grid_and_set(old: dict | None, plan: SweepPlan) -> tuple[dict, dict]:
+    """sweep.json's ``grid`` and ``set`` once ``plan`` joins the sweep ``old`` (None: a new directory).
+
+    ``grid`` lists every value each key took across the merged sweeps; a ``set`` key stays fixed only where both
+    fix it to the same value, otherwise it joins the grid (a side that left it unset ran the preset's default).
+    The ``runs`` list stays the record of each run's own overrides."""
+    new_grid, new_set = jsonable(plan.grid), jsonable(plan.fixed)
+    if old is None:
+        return new_grid, new_set
+    old_grid, old_set = dict(old.get("grid") or {}), dict(old.get("set") or {})
+    grid: dict[str, list] = {}
+
+    def add(key: str, values: list) -> None:
+        seen = grid.setdefault(key, [])
+        for v in values:
+            if all(json.dumps(v, sort_keys=True) != json.dumps(w, sort_keys=True) for w in seen):
+                seen.append(v)
+
+    for g in (old_grid, new_grid):
+        for k, vals in g.items():
+            add(k, list(vals))
+    fixed: dict = {}
+    defaults = None
+    for k in list(old_set) + [k for k in new_set if k not in old_set]:
+        if k in old_set and k in new_set and old_set[k] == new_set[k]:
+            fixed[k] = old_set[k]
+            continue
+        for this_set, this_grid in ((old_set, old_grid), (new_set, new_grid)):
+            if k in this_set:
+                add(k, [this_set[k]])
+            elif k not in this_grid:
+                if defaults is None:
+                    defaults = resolve_config(plan.preset, {}).to_dict()
+                add(k, [jsonable(defaults.get(k))])
+    return grid, fixed
+
+
 def _write_sweep_json(exp: Path, doc: dict) -> None:
     """Atomically, indented for people to read (not rundir.write_json_atomic: sweep.json is not a run's file)."""
     path = exp / SWEEP_JSON
@@ -174,10 +211,10 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         exp.mkdir(parents=True, exist_ok=True)
         lock = _lock(exp)
         sweep_id = (old or {}).get("id") or uuid.uuid4().hex
+        grid, fixed = merged_grid_and_set(old, plan)
         doc = {"preset": plan.preset, "id": sweep_id,
                "created": (old or {}).get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
-               "grid": jsonable((old or {}).get("grid") or plan.grid),
-               "set": jsonable((old or {}).get("set") or plan.fixed), "runs": entries}
+               "grid": grid, "set": fixed, "runs": entries}
         _write_sweep_json(exp, doc)
         (exp / RUNS).mkdir(exist_ok=True)
         if tracker is not None:
