@@ -90,11 +90,12 @@ case "$cmd" in
         [ -d "$SB3_CODE" ] || { git clone -q "$REPO" "$SB3_CODE" && git -C "$SB3_CODE" checkout -q "$SB3_COMMIT"; }
         (cd "$SB3_CODE" && make install && .venv/bin/pip install -q -e ".[bench]" && touch .venv/.bench)
       fi
+      sb3_running() { pgrep -f "parity_sb3.py sb3 .*--run-dir $1( |$)" > /dev/null; }
       seeds=()
       for s in ${SB3_SEEDS:-0 1 2 3 4 5}; do
         d="$WORK/sb3-sac/runs/sb3-sac-s$s"
         if [ -f "$d/done" ]; then continue; fi
-        if pgrep -f "parity_sb3.py sb3 .*--run-dir $d( |$)" > /dev/null; then echo "stable-baselines3 seed $s already running"; continue; fi
+        if sb3_running "$d"; then echo "stable-baselines3 seed $s already running"; continue; fi
         seeds+=("$s")
       done
       if [ "${#seeds[@]}" -gt 0 ]; then
@@ -102,7 +103,7 @@ case "$cmd" in
         (trap '' HUP; for s in "${seeds[@]}"; do
            d="$WORK/sb3-sac/runs/sb3-sac-s$s"
            # checked again: another start may have run or begun this seed since (no second writer on one run)
-           if [ -f "$d/done" ] || pgrep -f "parity_sb3.py sb3 .*--run-dir $d( |$)" > /dev/null; then continue; fi
+           if [ -f "$d/done" ] || sb3_running "$d"; then continue; fi
            if ls "$d"/sb3_checkpoints/step_*/state.pkl > /dev/null 2>&1; then args=(--resume)
            else args=(--preset fetchpush-sac --seed "$s" --overwrite); fi
            "$SB3_CODE/.venv/bin/python" "$SB3_CODE/benchmarks/parity_sb3.py" sb3 "${args[@]}" \
