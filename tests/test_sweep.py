@@ -94,22 +94,24 @@ def test_local_sweep_writes_the_experiment_directory(local_exp):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(900)  # Ray's start-up and four runs: ~3 min on a quiet 2-core machine, far more on a busy one
+@pytest.mark.timeout(900)  # Ray's start-up and two runs: minutes on a busy 2-core machine
 def test_ray_backend_gives_the_same_runs(local_exp, tmp_path):
     exp, _ = local_exp
     ray_exp = tmp_path / "ray"
     # one run pretends its worker cannot see EXP: it trains in a temporary directory and ships its files back
-    res = _run_cli(_sweep_args(ray_exp, "0,0.2", "2", "--backend", "ray", "--workers", "2"),
+    # SAC-MC's two seeds (the alpha-0 runs take the same code path through Ray; the local sweep checks them)
+    res = _run_cli(_sweep_args(ray_exp, "0.2", "2", "--backend", "ray", "--workers", "2"),
                    env={"MCRL_SWEEP_SHIP_FILES": "a0.2-s1"}, timeout=850)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "start a0.2-s1 (pid" in res.stdout and "files shipped back" in res.stdout
-    for name in RUN_NAMES:
+    names = ["a0.2-s0", "a0.2-s1"]
+    for name in names:
         _same_run(exp / "runs" / name, ray_exp / "runs" / name)
     shipped = ray_exp / "runs" / "a0.2-s1"
     assert (shipped / "checkpoints" / "latest").read_text().strip() == f"step_{STEPS:09d}"
     assert list(shipped.glob("events.out.tfevents.*"))
     runs = [json.loads((d / "sweep.json").read_text())["runs"] for d in (exp, ray_exp)]
-    assert runs[0] == runs[1]
+    assert [r for r in runs[0] if r["name"] in names] == runs[1]
 
 
 @pytest.mark.slow
