@@ -514,3 +514,17 @@ def test_arms_that_differ_only_in_the_reward_are_named_by_algorithm(tmp_path: Pa
     assert [g.key for g in load_experiment(arms, [exp]).configs] == [
         "SAC", "SAC+Disagreement 0.2", "SAC+RND 0.2", "SAC-MC 0.2"]
     assert [g.key for g in load_experiment(arms).configs] == ["intrinsic=disagreement", "intrinsic=rnd"]
+    # a partial sweep (issue 29's after its first run): Disagreement has not started, so it has no config.json;
+    # sweep.json's overrides over the RND runs' settings name it as the others are named
+    partial = tmp_path / "partial"
+    entries = [{**r, "overrides": {"intrinsic": r["name"].split("=")[1].split("-s")[0], "seed": r["seed"]}}
+               for r in runs]
+    for r in entries:
+        if r["overrides"]["intrinsic"] == "rnd":
+            shutil.copytree(arms / "runs" / r["name"], partial / "runs" / r["name"])
+    (partial / "sweep.json").write_text(json.dumps({"preset": "fetchpush-sacmc-0.2", "runs": entries}))
+    groups = load_experiment(partial, [exp]).configs
+    n = len(FINALS["alpha=0.2"])
+    assert [(g.key, len(g.runs), len(g.finished)) for g in groups] == [
+        ("SAC", n, n), ("SAC+Disagreement 0.2", n, 0), ("SAC+RND 0.2", n, n), ("SAC-MC 0.2", n, n)]
+    assert groups[1].mc_alpha == 0.2 and groups[1].intrinsic == "disagreement" and groups[1].total_steps == TOTAL

@@ -126,10 +126,12 @@ class ConfigGroup:
     key: str  # its label in the report
     runs: list[Run]
     peer: str | None = None  # "stable-baselines3 2.9.2" for a reference arm trained by another system
+    settings: dict[str, Any] = field(default_factory=dict)  # as grouped (an arm not started: its started twin's)
 
     def _setting(self, key: str) -> Any:
-        """The first value of ``key`` that its runs' config.json or sweep overrides give; None if none does."""
-        return next((src[key] for r in self.runs for src in (r.config, r.overrides) if src.get(key) is not None), None)
+        """The first value of ``key`` that its runs' config.json or sweep overrides give, else its settings'."""
+        return next((src[key] for r in self.runs for src in (r.config, r.overrides) if src.get(key) is not None),
+                    self.settings.get(key))
 
     @property
     def mc_alpha(self) -> float | None:
@@ -143,8 +145,8 @@ class ConfigGroup:
 
     @property
     def total_steps(self) -> int | None:
-        """The budget its runs were configured with (the first one known)."""
-        return next((r.total_steps for r in self.runs if r.total_steps is not None), None)
+        """The budget its runs were configured with (the first one known; an arm not started: its settings')."""
+        return next((r.total_steps for r in self.runs if r.total_steps is not None), self.settings.get("total_steps"))
 
     @property
     def finished(self) -> list[Run]:
@@ -358,6 +360,18 @@ def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
         key = homes[0] if len(homes) == 1 else (_family(r), f"unstarted:{r.source}:{r.config_key or r.name}",
                                                 r.label or "")
         buckets.setdefault(key, []).append(r)
+    # An arm none of whose runs has started has no settings of its own; for its name take those of a started run
+    # of the same sweep whose overrides have the same keys, with the arm's override values (sweep.json's overrides
+    # are a run's whole difference from the sweep's preset), so a partial sweep names its arms alike.
+    for key, rs in buckets.items():
+        r = rs[0]
+        if key in settings or not r.overrides:
+            continue
+        twin = next((o for k, v in buckets.items() if k in settings and k[0] == key[0] for o in v
+                     if o.config and o.source == r.source and o.overrides.keys() == r.overrides.keys()), None)
+        if twin is not None:
+            settings[key] = _settings({**twin.config, **{k: v for k, v in r.overrides.items()
+                                                         if k not in NOT_CONFIGURATION}})
 
     labels: dict[tuple[str, str, str], str] = {}
     for fam in dict.fromkeys(k[0] for k in buckets):
@@ -393,7 +407,8 @@ def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
     for k, rs in buckets.items():
         peer = rs[0].peer
         system = None if peer is None else f"{peer.get('system') or 'peer'} {peer.get('version') or ''}".strip()
-        groups.append(ConfigGroup(labels[k], sorted(rs, key=lambda r: (r.seed is None, r.seed or 0, r.name)), system))
+        groups.append(ConfigGroup(labels[k], sorted(rs, key=lambda r: (r.seed is None, r.seed or 0, r.name)), system,
+                                  settings.get(k) or {}))
     # mcrl's SAC first, then increasing alpha (the order of the thesis' tables), then the reference arms.
     groups.sort(key=lambda g: (g.peer is not None, g.mc_alpha is None, g.mc_alpha or 0.0, g.key))
     return groups
