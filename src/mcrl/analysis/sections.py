@@ -19,11 +19,12 @@ from mcrl.analysis.cells import (CONF, SEED, code, interval, mean_ci, name, num,
                                  sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.claims import thesis_section
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
-from mcrl.analysis.experiment import ConfigGroup, Experiment, Run
+from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.intrinsic import intrinsic_section
 from mcrl.analysis.hypothesis import fisher_exact, holm, rank_sum_test
 from mcrl.analysis.markdown import Block, Bullets, Figure, Heading, Paragraph, Table
 from mcrl.analysis.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
+from mcrl.analysis.runs import Run
 from mcrl.analysis.stats import (
     MIN_SEEDS_FOR_VERDICT,
     align_curves,
