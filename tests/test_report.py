@@ -234,14 +234,20 @@ def test_no_verdict_from_too_few_seeds(tmp_path: Path, n_seeds: int) -> None:
     md = write_report(exp, tmp_path / "rep").read_text()
     for line in md.splitlines():
         assert not any(w in line.lower() for w in VERDICT_WORDS), line
-    few = f"too few seeds for a verdict (n={n_seeds} vs {n_seeds}, need >= {MIN_SEEDS_FOR_VERDICT})"
+    few = f"too few seeds for a verdict: n = {n_seeds} vs {n_seeds}, need >= {MIN_SEEDS_FOR_VERDICT}"
     poi = _row(_section(md, "IQM and probability of improvement"), "`alpha=0.2` > `alpha=0`")
     assert poi[3] == few and poi[5] == few
+    assert poi[2] == f"0.000 (no CI from {n_seeds} seed{'s' if n_seeds > 1 else ''}, need >= 3)"
     thesis = _section(md, "Comparison with the thesis (FetchPush)")
     assert (f"**Not decidable with this many seeds**: the thesis' claim that SAC-MC alpha=0.2 reaches a higher final "
             f"success rate than SAC (thesis: +0.23), X = `alpha=0.2`, Y = mcrl SAC `alpha=0`, {n_seeds} vs {n_seeds} "
             f"seeds: fewer than the {MIN_SEEDS_FOR_VERDICT} seeds per arm a verdict needs.") in thesis
-    assert f"SAC (`alpha=0`) success rate: too few seeds for a verdict (n={n_seeds}, need >= 3)" in thesis
+    assert f"SAC (`alpha=0`) success rate: too few seeds for a verdict: n = {n_seeds}, need >= 3" in thesis
+    # no interval either: a bootstrap over two seeds is just their range
+    final = _row(_section(md, "Final performance per configuration"), "`alpha=0`")
+    plural = "s" if n_seeds > 1 else ""
+    assert final[4] == f"{np.mean([s for s, _ in sac]):.3f} (no CI from {n_seeds} seed{plural}, need >= 3)"
+    assert "[" not in final[6]
     assert _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")[4] == few
     assert f"at least {MIN_SEEDS_FOR_VERDICT} finished seeds" in md  # the rule is stated in the overview
 
@@ -496,7 +502,7 @@ def test_other_intrinsic_rewards_against_sac_and_sac_mc(tmp_path: Path) -> None:
         shutil.copytree(exp / "runs" / r["name"], small / "runs" / r["name"])
     (small / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": sweep}))
     sec = _section(write_report(small, tmp_path / "rep2").read_text(), "Other intrinsic rewards against SAC and SAC-MC")
-    assert _row(sec, "`rnd` | `alpha=0`")[6].startswith("not decidable with this many seeds (too few seeds")
+    assert _row(sec, "`rnd` | `alpha=0`")[6].startswith("not decidable with this many seeds: too few seeds")
     rows = [ln for ln in sec.splitlines() if ln.startswith("| `")]
     assert len(rows) == 4 and not any("better" in r or "worse" in r or "short" in r for r in rows)
 
@@ -528,3 +534,7 @@ def test_arms_that_differ_only_in_the_reward_are_named_by_algorithm(tmp_path: Pa
     assert [(g.key, len(g.runs), len(g.finished)) for g in groups] == [
         ("SAC", n, n), ("SAC+Disagreement 0.2", n, 0), ("SAC+RND 0.2", n, n), ("SAC-MC 0.2", n, n)]
     assert groups[1].mc_alpha == 0.2 and groups[1].intrinsic == "disagreement" and groups[1].total_steps == TOTAL
+    # its final-table row gives the configured budget and no mean, rather than "?" and "n/a n/a"
+    row = _row(_section(write_report(partial, tmp_path / "rep", extra_runs=[exp]).read_text(),
+                        "Final performance per configuration"), "`SAC+Disagreement 0.2`")
+    assert row[2:5] == [f"0 / {n}", f"{TOTAL:,}", "n/a"] and row[6] == "n/a"

@@ -42,10 +42,21 @@ def name(g: ConfigGroup) -> str:
 
 
 def mean_ci(x: np.ndarray) -> tuple[float, tuple[float, float] | None]:
-    """Mean and 95% percentile-bootstrap CI over seeds; no CI from fewer than 2 seeds."""
+    """Mean and 95% percentile-bootstrap CI over seeds; no CI from fewer than MIN_SEEDS_FOR_VERDICT seeds
+    (a bootstrap over two seeds is only their range, not a 95% interval)."""
     if x.size == 0:
         return math.nan, None
-    return float(x.mean()), (bootstrap_ci(x, np.mean, conf=CONF, rng=SEED) if x.size >= 2 else None)
+    return float(x.mean()), (bootstrap_ci(x, np.mean, conf=CONF, rng=SEED) if x.size >= MIN_SEEDS_FOR_VERDICT else None)
+
+
+def mean_cell(est: float, ci: Sequence[float] | None, n: int, digits: int) -> str:
+    """'0.557 [0.395, 0.698]'; from fewer than MIN_SEEDS_FOR_VERDICT seeds (n: the smallest arm's), the estimate
+    and why it has no interval."""
+    if n == 0 or not math.isfinite(est):
+        return "n/a"
+    if n < MIN_SEEDS_FOR_VERDICT or ci is None:
+        return f"{num(est, digits)} (no CI from {n} seed{'s' if n > 1 else ''}, need >= {MIN_SEEDS_FOR_VERDICT})"
+    return f"{num(est, digits)} {interval(ci, digits)}"
 
 
 def sample_var(x: np.ndarray) -> float:
@@ -57,7 +68,7 @@ def too_few(*ns: int) -> str | None:
     """The report's text for a reading from too few seeds, or None when every n is enough."""
     if min(ns) >= MIN_SEEDS_FOR_VERDICT:
         return None
-    return f"too few seeds for a verdict (n={' vs '.join(map(str, ns))}, need >= {MIN_SEEDS_FOR_VERDICT})"
+    return f"too few seeds for a verdict: n = {' vs '.join(map(str, ns))}, need >= {MIN_SEEDS_FOR_VERDICT}"
 
 
 # ------------------------------------------------------------------------------------ which arm is which

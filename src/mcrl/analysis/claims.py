@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from mcrl.analysis.cells import (CONF, SEED, interval, is_code_variant, mcrl_groups, mean_ci, num, pvalue,
+from mcrl.analysis.cells import (CONF, SEED, interval, is_code_variant, mcrl_groups, mean_cell, mean_ci, num, pvalue,
                                  reference_sac, sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.hypothesis import holm, rank_sum_power, rank_sum_test
@@ -114,9 +114,9 @@ def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[st
             (ms, cs), (mm, cm) = mean_ci(s), mean_ci(m)
             row_label = f"{label}, reference" if g.peer else label
             row_label += ", the thesis' code's variant" if alpha > 0 and is_code_variant(g) else ""
-            rows.append([f"{row_label} (`{g.key}`)", f"{th['success_mean']:.2f}", f"{num(ms, 3)} {interval(cs, 3)}",
+            rows.append([f"{row_label} (`{g.key}`)", f"{th['success_mean']:.2f}", mean_cell(ms, cs, s.size, 3),
                          f"{th['success_var']:.2f}", num(sample_var(s), 4), f"{th['mean_reward']:.1f}",
-                         f"{num(mm, 2)} {interval(cm, 2)}"])
+                         mean_cell(mm, cm, m.size, 2)])
             lines.append(_thesis_verdict(f"{row_label} (`{g.key}`) success rate", th["success_mean"], ms, cs, s.size, 2))
             lines.append(_thesis_verdict(f"{row_label} (`{g.key}`) mean return", th["mean_reward"], mm, cm, m.size, 1))
     return rows, lines

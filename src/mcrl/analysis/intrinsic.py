@@ -100,7 +100,7 @@ def _row(c: Comparison) -> list[str]:
     few = too_few(sx.size, sy.size)
     base = f"`{c.y.key}`" + (" (reference)" if c.y.peer else "")
     if few:
-        return [f"`{c.x.key}`", base, f"{sx.size} / {sy.size}", c.test, "-", "-", f"{NOT_DECIDABLE} ({few})",
+        return [f"`{c.x.key}`", base, f"{sx.size} / {sy.size}", c.test, "-", "-", f"{NOT_DECIDABLE}: {few}",
                 "-", "-", "-"]
 
     def ps(p: float | None, adj: float | None) -> str:

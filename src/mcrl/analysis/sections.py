@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mcrl.analysis.cells import (CONF, SEED, code, interval, mean_ci, name, num, other_intrinsic, pvalue,
+from mcrl.analysis.cells import (CONF, SEED, code, mean_cell, mean_ci, name, num, other_intrinsic, pvalue,
                                  sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.claims import thesis_section
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
@@ -70,7 +70,8 @@ def _overview(exp: Experiment) -> list[Block]:
         f"runs finished: {n_done} of {len(exp.runs)}"
         + ("" if n_done == len(exp.runs) else " (see [Missing and unfinished runs](#missing-and-unfinished-runs))"),
         f"configurations: {', '.join(f'`{g.key}`' for g in exp.configs)}",
-        f"confidence intervals: 95%, percentile bootstrap over seeds (seed {SEED}); IQM and probability of "
+        f"confidence intervals: 95%, percentile bootstrap over seeds (seed {SEED}), none from fewer than "
+        f"{MIN_SEEDS_FOR_VERDICT} seeds; IQM and probability of "
         f"improvement: stratified bootstrap via {bootstrap_backend()}",
         f"readings and verdicts need at least {MIN_SEEDS_FOR_VERDICT} finished seeds in every configuration "
         "compared (MIN_SEEDS_FOR_VERDICT); with fewer the report says 'too few seeds for a verdict'",
@@ -137,8 +138,10 @@ def _final_table(exp: Experiment) -> list[Block]:
         ms, cs = mean_ci(s)
         mm, cm = mean_ci(m)
         budgets = sorted({r.total_steps for r in g.finished if r.total_steps is not None})
-        rows.append([name(g), num(g.mc_alpha, 2), f"{s.size} / {len(g.runs)}", ", ".join(map(steps, budgets)) or "?",
-                     f"{num(ms, 3)} {interval(cs, 3)}", num(sample_var(s), 4), f"{num(mm, 2)} {interval(cm, 2)}", _source(g.finished)])
+        rows.append([name(g), num(g.mc_alpha, 2), f"{s.size} / {len(g.runs)}",
+                     ", ".join(map(steps, budgets)) or steps(g.total_steps),  # none finished: the configured budget
+                     mean_cell(ms, cs, s.size, 3), num(sample_var(s), 4), mean_cell(mm, cm, m.size, 2),
+                     _source(g.finished)])
     return [
         Heading(2, "Final performance per configuration"),
         Paragraph("Final evaluation of each finished run across seeds: mean with 95% bootstrap CI, and sample variance "
@@ -195,8 +198,8 @@ def _robust_stats(exp: Experiment) -> list[Block]:
               "stratified-bootstrap 95% CIs (rliable's method; the overview names the implementation that ran). "
               "With fewer than 4 seeds the IQM is the plain mean."),
         Table(["configuration", "seeds", "IQM success [95% CI]", "IQM final return [95% CI]"],
-         [[name(g), str(len(g.finished)), f"{num(succ[g.key][0], 3)} {interval(succ[g.key][1:], 3)}",
-           f"{num(ret[g.key][0], 2)} {interval(ret[g.key][1:], 2)}"] for g in groups]),
+         [[name(g), str(len(g.finished)), mean_cell(succ[g.key][0], succ[g.key][1:], len(g.finished), 3),
+           mean_cell(ret[g.key][0], ret[g.key][1:], len(g.finished), 2)] for g in groups]),
     ]
     sac, mc = sac_and_mc(exp)
     if not sac or not mc:
@@ -213,8 +216,9 @@ def _robust_stats(exp: Experiment) -> list[Block]:
         ps = probability_of_improvement(sx, sy, conf=CONF, seed=SEED)
         pm = probability_of_improvement(mx, my, conf=CONF, seed=SEED)
         yname = "SAC" if any(y is g for g in sac) else f"`{y.key}`"
-        rows.append([f"`{x.key}` > `{y.key}`", f"{sx.size} / {sy.size}", f"{num(ps[0], 3)} {interval(ps[1:], 3)}",
-                     _reading(p_s, sx.size, sy.size, yname, ps[0] > 0.5), f"{num(pm[0], 3)} {interval(pm[1:], 3)}",
+        n_s, n_m = min(sx.size, sy.size), min(mx.size, my.size)
+        rows.append([f"`{x.key}` > `{y.key}`", f"{sx.size} / {sy.size}", mean_cell(ps[0], ps[1:], n_s, 3),
+                     _reading(p_s, sx.size, sy.size, yname, ps[0] > 0.5), mean_cell(pm[0], pm[1:], n_m, 3),
                      _reading(p_m, mx.size, my.size, yname, pm[0] > 0.5)])
     return out + [
         Paragraph("Probability of improvement P(X > Y): the chance that a random finished seed of configuration X "
