@@ -19,33 +19,20 @@ COMMIT="$(cat "$HERE/COMMIT")"
 WORK="${WORK:-/work/repro/intrinsic}"
 CODE="$WORK/mcrl-$COMMIT"
 EXP=arms
-machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
+. "$REPO/docs/background-runs.sh"
 py() { if [ -x "$CODE/.venv/bin/python" ]; then "$CODE/.venv/bin/python" "$@"; else python3 "$@"; fi; }
 
 case "${1:-status}" in
   sync)
-    [ -d "$WORK/$EXP" ] && py "$REPO/benchmarks/sync_runs.py" "$WORK/$EXP" "$HERE/$EXP" --machine "$machine"
-    if git -C "$REPO" check-ignore -q "$HERE/$EXP"/runs/*/config.json 2>/dev/null; then
-      echo "error: git ignores the synced run files under $HERE: fix .gitignore before committing" >&2; exit 1
-    fi ;;
+    sync_runs py "$REPO" "$WORK/$EXP" "$HERE/$EXP"
+    check_not_ignored "$REPO" "$HERE/$EXP"/runs/*/config.json ;;
   status)
-    echo "$EXP: $(ls -d "$WORK/$EXP"/runs/*/done 2>/dev/null | wc -l) finished;" \
-         "$(ls -d "$HERE/$EXP"/runs/*/done 2>/dev/null | wc -l) committed"
-    for d in "$WORK/$EXP"/runs/*/; do
-      if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
-        echo "  in progress: $(basename "$d") at step $(tail -1 "$d/metrics.csv" | cut -d, -f1)"
-      fi
-    done ;;
+    arm_status "$EXP" "$WORK/$EXP" "$HERE/$EXP" ;;
   report)
     "$REPO/.venv/bin/mcrl" report "$HERE/$EXP" --with "$REPO/docs/reproduction/fetchpush/main" --out "$HERE/report" ;;
   start)
-    if [ ! -x "$CODE/.venv/bin/mcrl" ]; then
-      mkdir -p "$WORK"
-      git clone -q "$REPO" "$CODE" && git -C "$CODE" checkout -q "$COMMIT"
-      (cd "$CODE" && make install)
-    fi
-    if [ -d "$HERE/$EXP/runs" ]; then mkdir -p "$WORK/$EXP/runs"; cp -rn "$HERE/$EXP/runs/." "$WORK/$EXP/runs/"; fi
-    if [ -f "$HERE/$EXP/sweep.json" ] && [ ! -f "$WORK/$EXP/sweep.json" ]; then cp "$HERE/$EXP/sweep.json" "$WORK/$EXP/"; fi
+    install_code "$REPO" "$CODE" "$COMMIT"
+    restore_runs "$HERE/$EXP" "$WORK/$EXP"
     if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
     # RND and Disagreement (the issue's two arms) first, then ICM into the same directory; each skips finished runs
     (trap '' HUP; for f in sweep.yaml sweep-icm.yaml; do
@@ -53,10 +40,8 @@ case "${1:-status}" in
          --exp "$WORK/$EXP" --no-progress || exit
      done) >> "$WORK/$EXP.log" 2>&1 &
     echo "started the sweep: RND and Disagreement, then ICM (log $WORK/$EXP.log)"
-    for _ in $(seq 120); do [ -f "$WORK/$EXP/sweep.json" ] && break; sleep 1; done
-    [ -f "$WORK/$EXP/provenance.json" ] || printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
-      "$COMMIT" "$machine" "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
-      "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" \
-      > "$WORK/$EXP/provenance.json" ;;
+    [ -f "$WORK/$EXP/provenance.json" ] || write_provenance "$WORK/$EXP" "$COMMIT" \
+      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
+      "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" ;;
   *) echo "usage: $0 start|sync|status|report" >&2; exit 2 ;;
 esac

@@ -21,47 +21,16 @@ CODE="$WORK/mcrl-$COMMIT"
 ARMS="main code-variant sb3-sac"        # experiment dirs: SAC + SAC-MC 0.2; the thesis code's variant; SB3
 
 cmd="${1:-status}"
-# this machine, as recorded in provenance.json for the runs it finishes
-machine="$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
-sync() {  # the working tree's sync_runs.py (stdlib only), which records the machine of each newly finished run
-  for arm in $ARMS; do
-    [ -d "$WORK/$arm" ] && "$CODE/.venv/bin/python" "$REPO/benchmarks/sync_runs.py" "$WORK/$arm" "$HERE/$arm" --machine "$machine"
-  done
-  return 0
-}
+. "$REPO/docs/background-runs.sh"
 case "$cmd" in
   sync)
-    sync
-    # a file git ignores would be lost with the machine: say so now, not when it is gone
-    if git -C "$REPO" check-ignore -q "$HERE"/*/runs/*/config.json 2>/dev/null; then
-      echo "error: git ignores the synced run files under $HERE: fix .gitignore before committing" >&2; exit 1
-    fi ;;
+    for arm in $ARMS; do sync_runs "$CODE/.venv/bin/python" "$REPO" "$WORK/$arm" "$HERE/$arm"; done
+    check_not_ignored "$REPO" "$HERE"/*/runs/*/config.json ;;
   status)
-    for arm in $ARMS; do
-      echo "$arm: $(ls -d "$WORK/$arm"/runs/*/done 2>/dev/null | wc -l) finished;" \
-           "$(ls -d "$HERE/$arm"/runs/*/done 2>/dev/null | wc -l) committed"
-    done
-    for d in "$WORK"/*/runs/*/; do  # runs in progress: the last logged step
-      if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
-        echo "  in progress: $(basename "$(dirname "$(dirname "$d")")")/$(basename "$d") at step $(tail -1 "$d/metrics.csv" | cut -d, -f1)"
-      fi
-    done ;;
+    for arm in $ARMS; do arm_status "$arm" "$WORK/$arm" "$HERE/$arm"; done ;;
   start)
-    if [ ! -x "$CODE/.venv/bin/mcrl" ]; then
-      git clone -q "$REPO" "$CODE" && git -C "$CODE" checkout -q "$COMMIT"
-      (cd "$CODE" && make install && .venv/bin/pip install -q -e ".[bench]")
-    fi
-    for arm in $ARMS; do  # finished runs from git: the sweep skips them
-      if [ -d "$HERE/$arm/runs" ]; then mkdir -p "$WORK/$arm/runs"; cp -rn "$HERE/$arm/runs/." "$WORK/$arm/runs/"; fi
-      if [ -f "$HERE/$arm/sweep.json" ] && [ ! -f "$WORK/$arm/sweep.json" ]; then
-        mkdir -p "$WORK/$arm" && cp "$HERE/$arm/sweep.json" "$WORK/$arm/"
-      fi
-    done
-    mk_prov() {  # $1 arm, $2 command, $3 one-seed command; after the sweep made its directory (it wants it empty)
-      for _ in $(seq 120); do [ -f "$WORK/$1/sweep.json" ] && break; sleep 1; done
-      printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
-        "$COMMIT" "$machine" "$2" "$3" > "$WORK/$1/provenance.json"
-    }
+    install_code "$REPO" "$CODE" "$COMMIT" bench
+    for arm in $ARMS; do restore_runs "$HERE/$arm" "$WORK/$arm"; done
     M="$CODE/.venv/bin/mcrl"
     mkdir -p "$WORK/sb3-sac/runs"
     # SAC and SAC-MC 0.2, seed-major order (s0 of both arms first), 2 runs at a time, 1 thread each; the sweep
@@ -75,7 +44,7 @@ case "$cmd" in
         --exp "$WORK/main" --no-progress > "$WORK/main.log" 2>&1 &
       echo "started main sweep (log $WORK/main.log)"
       # the machine and commit of this sweep's runs (not written when another start only adds SB3 runs)
-      mk_prov main "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds ${SEEDS:-12} --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP" \
+      write_provenance "$WORK/main" "$COMMIT" "mcrl sweep --preset fetchpush-sac --alphas 0,0.2 --seeds ${SEEDS:-12} --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP" \
         "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --seed N  (or --preset fetchpush-sacmc-0.2)"
     fi
     # The stable-baselines3 reference, SB3_SEEDS (default 0 1 2 3 4 5) one after another, from its own commit
@@ -118,7 +87,7 @@ case "$cmd" in
       nohup "$M" sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 \
         --workers "${VARIANT_WORKERS:-2}" --threads-per-run 1 --exp "$WORK/code-variant" --no-progress > "$WORK/code-variant.log" 2>&1 &
       echo "started the code-variant sweep (log $WORK/code-variant.log)"
-      mk_prov code-variant "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --workers ${VARIANT_WORKERS:-2} --threads-per-run 1 --exp EXP" \
+      write_provenance "$WORK/code-variant" "$COMMIT" "mcrl sweep --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seeds 6 --workers ${VARIANT_WORKERS:-2} --threads-per-run 1 --exp EXP" \
         "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set mc_reduction=batch --set mc_state=full --seed N"
     fi ;;
   *) echo "usage: $0 start|sync|status" >&2; exit 2 ;;

@@ -1,0 +1,58 @@
+# Shared by the run.sh scripts of long experiments (docs/reproduction/fetchpush, docs/intrinsic/fetchpush):
+# install one fixed commit, bring committed runs back, sync finished runs into git, report progress.
+# Sourced, not run; every function takes its directories as arguments.
+
+# this machine, as recorded in provenance.json and in each newly finished run's machine.json
+machine_name() {
+  echo "$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
+}
+
+# install_code REPO CODE COMMIT [EXTRAS]: a clone of REPO at COMMIT in CODE with its .venv (once)
+install_code() {
+  [ -x "$2/.venv/bin/mcrl" ] && return 0
+  mkdir -p "$(dirname "$2")"
+  [ -d "$2" ] || { git clone -q "$1" "$2" && git -C "$2" checkout -q "$3"; }
+  (cd "$2" && make install && if [ -n "${4:-}" ]; then .venv/bin/pip install -q -e ".[$4]"; fi)
+}
+
+# restore_runs COMMITTED WORK: finished runs from git back into the work directory (the sweep skips them), and
+# the committed sweep.json where the work directory has none, so a new machine resumes where git left off
+restore_runs() {
+  if [ -d "$1/runs" ]; then mkdir -p "$2/runs"; cp -rn "$1/runs/." "$2/runs/"; fi
+  if [ -f "$1/sweep.json" ] && [ ! -f "$2/sweep.json" ]; then mkdir -p "$2" && cp "$1/sweep.json" "$2/"; fi
+}
+
+# sync_runs PYTHON REPO WORK COMMITTED: finished runs' small files into git's tree (sync_runs.py, stdlib only,
+# records the machine of each newly finished run)
+sync_runs() {
+  [ -d "$3" ] || return 0
+  "$1" "$2/benchmarks/sync_runs.py" "$3" "$4" --machine "$(machine_name)"
+}
+
+# check_not_ignored REPO FILE...: a synced file git ignores would be lost with the machine: say so now
+check_not_ignored() {
+  local repo="$1"; shift
+  if git -C "$repo" check-ignore -q "$@" 2>/dev/null; then
+    echo "error: git ignores synced run files ($1 ...): fix .gitignore before committing" >&2; return 1
+  fi
+}
+
+# arm_status NAME WORK COMMITTED: finished and committed runs, then each run in progress at its last logged step
+arm_status() {
+  echo "$1: $(ls -d "$2"/runs/*/done 2>/dev/null | wc -l) finished;" \
+       "$(ls -d "$3"/runs/*/done 2>/dev/null | wc -l) committed"
+  local d
+  for d in "$2"/runs/*/; do
+    if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
+      echo "  in progress: $1/$(basename "$d") at step $(tail -1 "$d/metrics.csv" | cut -d, -f1)"
+    fi
+  done
+}
+
+# write_provenance WORK COMMIT COMMAND RERUN_ONE_SEED: provenance.json of a sweep's directory, once the sweep
+# has made the directory (it wants to create it itself)
+write_provenance() {
+  for _ in $(seq 120); do [ -f "$1/sweep.json" ] && break; sleep 1; done
+  printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
+    "$2" "$(machine_name)" "$3" "$4" > "$1/provenance.json"
+}
