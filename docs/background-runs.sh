@@ -41,10 +41,12 @@ check_not_ignored() {
 arm_status() {
   echo "$1: $(ls -d "$2"/runs/*/done 2>/dev/null | wc -l) finished;" \
        "$(ls -d "$3"/runs/*/done 2>/dev/null | wc -l) committed"
-  local d
+  local d s
   for d in "$2"/runs/*/; do
     if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
-      echo "  in progress: $1/$(basename "$d") at step $(tail -1 "$d/metrics.csv" | cut -d, -f1)"
+      s="$(tail -1 "$d/metrics.csv" | cut -d, -f1)"
+      [ "$s" = step ] && s="0 (no row logged yet)"  # only the header so far
+      echo "  in progress: $1/$(basename "$d") at step $s"
     fi
   done
 }
