@@ -206,6 +206,41 @@ def test_plot_run_writes_a_real_png(experiment: Path, tmp_path: Path) -> None:
         plot_run(tmp_path / "nope")
 
 
+
+def test_band_only_where_enough_seeds_have_the_point() -> None:
+    """A bootstrap band over two seeds is their range: the band is shaded only where >= 3 seeds have
+    the point, and elsewhere the seeds' own curves are drawn thin."""
+    from matplotlib.collections import PolyCollection
+    from matplotlib.figure import Figure as MplFigure
+
+    from mcrl.analysis.plots import plot_curves_with_band
+
+    x = np.arange(5.0)
+    rng = np.random.default_rng(0)
+
+    def draw(curves: np.ndarray):
+        ax = MplFigure().add_subplot()
+        plot_curves_with_band(ax, x, {"arm": curves})
+        bands = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        return bands, ax.lines
+
+    bands, lines = draw(rng.random((2, 5)))  # two seeds: no band, mean + both seeds
+    assert bands == [] and len(lines) == 3
+    assert lines[0].get_label() == "arm (n=2)" and lines[1].get_linewidth() < lines[0].get_linewidth()
+
+    bands, lines = draw(rng.random((3, 5)))  # three seeds everywhere: band, mean only
+    assert len(bands) == 1 and len(lines) == 1
+
+    partial = rng.random((3, 5))
+    partial[2, 3:] = np.nan  # the third seed stopped early: band up to x = 2, seeds' curves after
+    bands, lines = draw(partial)
+    assert len(bands) == 1 and len(lines) == 4
+    band_x = bands[0].get_paths()[0].vertices[:, 0]
+    assert band_x.max() <= 2.0 + 1e-9
+    thin = lines[1].get_ydata()
+    assert np.isnan(thin[:3]).all() and np.allclose(thin[3:], partial[0, 3:])
+
+
 # ------------------------------------------------------------------ verdicts need enough seeds
 
 VERDICT_WORDS = ("better", "worse", "supported", "contradicted", "**reproduced**", "**not reproduced**")

@@ -16,7 +16,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from mcrl.analysis.stats import DEFAULT_N_BOOT, mean_ci_band
+from mcrl.analysis.stats import DEFAULT_N_BOOT, MIN_SEEDS_FOR_VERDICT, mean_ci_band
 from mcrl.errors import MCRLError
 from mcrl.run.rundir import CONFIG, EVAL, METRICS, is_done, read_columns, read_json
 
@@ -45,8 +45,10 @@ def plot_curves_with_band(
     """Draw, per configuration, the mean curve over seeds and its 95% bootstrap band.
 
     ``curves_by_config`` maps a label to curves (n_seeds, n_points) (a 1-D curve is one seed)
-    sampled at ``steps``; NaN marks points a seed lacks. With one seed the band is the curve
-    itself, which is how a single run is drawn by :func:`plot_run`.
+    sampled at ``steps``; NaN marks points a seed lacks. The band is shaded only where at least
+    ``MIN_SEEDS_FOR_VERDICT`` seeds have the point (a bootstrap over two seeds is just their
+    range); where fewer do, the seeds' own curves are drawn thin beside the mean instead. One
+    seed is drawn as its curve alone, which is how :func:`plot_run` draws a single run.
     """
     x = np.asarray(steps, dtype=float)
     for i, (label, curves) in enumerate(curves_by_config.items()):
@@ -56,8 +58,15 @@ def plot_curves_with_band(
         n = c.shape[0]
         ax.plot(x, mean, color=color, linestyle=linestyle, lw=1.5,
                 label=label if n == 1 else f"{label} (n={n})")
-        if n > 1:
-            ax.fill_between(x, lo, hi, color=color, alpha=0.2, lw=0)
+        if n == 1:
+            continue
+        banded = np.isfinite(c).sum(0) >= MIN_SEEDS_FOR_VERDICT
+        if banded.any():
+            ax.fill_between(x, np.where(banded, lo, np.nan), np.where(banded, hi, np.nan),
+                            color=color, alpha=0.2, lw=0)
+        if not banded.all():
+            for curve in c:
+                ax.plot(x, np.where(banded, np.nan, curve), color=color, linestyle=linestyle, lw=0.6, alpha=0.5)
     if logy:
         ax.set_yscale("log")
     ax.set_title(title, fontsize=10)

@@ -125,7 +125,8 @@ def _learning_curves(exp: Experiment) -> list[Block]:
     return [
         Heading(2, "Learning curves"),
         Figure("learning_curves.png", figure_to_png(fig),
-         "Deterministic evaluation during training: mean over seeds, shaded 95% bootstrap band over seeds."
+         "Deterministic evaluation during training: mean over seeds, shaded 95% bootstrap band over seeds "
+         f"where at least {MIN_SEEDS_FOR_VERDICT} seeds have the point; where fewer do, thin lines are the seeds' own curves."
          + (" Dashed: reference arms (not trained by mcrl)." if any(g.peer for g in exp.configs) else "")
          + (f" {partial} unfinished run(s) are included up to their last evaluation." if partial else "")),
     ]
@@ -286,7 +287,7 @@ def _mc_section(exp: Experiment) -> list[Block]:
              num(last_mean(g, cols[1] if g.intrinsic == "mc" else "mean_raw_intrinsic"), 4)] for g in groups]
     return out + [
         Paragraph("The MC reward added to the replay batches and the raw per-transition KL (nats) it is normalised "
-              "from, per configuration (mean over seeds, 95% bootstrap band), like the thesis' Fig. 4.7. As the "
+              "from, per configuration (mean over seeds, 95% bootstrap band where >= 3 seeds have the point), like the thesis' Fig. 4.7. As the "
               "thesis notes, the MC reward is relative (normalised by percentiles of past KL values): compare "
               "its course over training, not its level, across tasks. An arm with another intrinsic reward "
               "(RND, ICM, Disagreement) logs its normalised reward in the same column and its own raw value "
