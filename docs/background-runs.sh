@@ -7,12 +7,17 @@ machine_name() {
   echo "$(lscpu | sed -n 's/^Model name: *//p'), family $(grep -m1 'cpu family' /proc/cpuinfo | cut -d: -f2 | tr -d ' ') model $(grep -m1 '^model\s' /proc/cpuinfo | cut -d: -f2 | tr -d ' '), $(nproc) cores"
 }
 
-# install_code REPO CODE COMMIT [EXTRAS]: a clone of REPO at COMMIT in CODE with its .venv (once)
+# install_code REPO CODE COMMIT [EXTRAS]: a clone of REPO at COMMIT in CODE with its .venv (once). Done means
+# make install's .venv/.installed and, with EXTRAS, a .venv/.EXTRAS marker written after they installed, so an
+# install cut short is finished by the next start
 install_code() {
-  [ -x "$2/.venv/bin/mcrl" ] && return 0
+  local extra="${4:-}"
+  [ -f "$2/.venv/.installed" ] && { [ -z "$extra" ] || [ -f "$2/.venv/.$extra" ]; } && return 0
   mkdir -p "$(dirname "$2")"
   [ -d "$2" ] || { git clone -q "$1" "$2" && git -C "$2" checkout -q "$3"; }
-  (cd "$2" && make install && if [ -n "${4:-}" ]; then .venv/bin/pip install -q -e ".[$4]"; fi)
+  (cd "$2" && make install && if [ -n "$extra" ]; then
+     # the pins where the commit has them (older commits pin in pyproject.toml only)
+     .venv/bin/pip install -q $([ -f constraints.txt ] && echo -c constraints.txt) -e ".[$extra]" && touch ".venv/.$extra"; fi)
 }
 
 # restore_runs COMMITTED WORK: finished runs from git back into the work directory (the sweep skips them), and

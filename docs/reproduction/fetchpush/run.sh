@@ -55,10 +55,7 @@ case "$cmd" in
     if [ "${WITH_SB3:-0}" = 1 ]; then
       SB3_COMMIT="$(cat "$HERE/sb3-sac/COMMIT")"
       SB3_CODE="$WORK/mcrl-$SB3_COMMIT"
-      if [ ! -x "$SB3_CODE/.venv/bin/python" ] || [ ! -f "$SB3_CODE/.venv/.bench" ]; then
-        [ -d "$SB3_CODE" ] || { git clone -q "$REPO" "$SB3_CODE" && git -C "$SB3_CODE" checkout -q "$SB3_COMMIT"; }
-        (cd "$SB3_CODE" && make install && .venv/bin/pip install -q -e ".[bench]" && touch .venv/.bench)
-      fi
+      install_code "$REPO" "$SB3_CODE" "$SB3_COMMIT" bench
       sb3_running() { pgrep -f "parity_sb3.py sb3 .*--run-dir $1( |$)" > /dev/null; }
       seeds=()
       for s in ${SB3_SEEDS:-0 1 2 3 4 5}; do
