@@ -206,7 +206,6 @@ def test_plot_run_writes_a_real_png(experiment: Path, tmp_path: Path) -> None:
         plot_run(tmp_path / "nope")
 
 
-
 def test_band_only_where_enough_seeds_have_the_point() -> None:
     """A bootstrap band over two seeds is their range: the band is shaded only where >= 3 seeds have
     the point, and elsewhere the seeds' own curves are drawn thin."""

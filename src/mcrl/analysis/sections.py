@@ -287,7 +287,8 @@ def _mc_section(exp: Experiment) -> list[Block]:
              num(last_mean(g, cols[1] if g.intrinsic == "mc" else "mean_raw_intrinsic"), 4)] for g in groups]
     return out + [
         Paragraph("The MC reward added to the replay batches and the raw per-transition KL (nats) it is normalised "
-              "from, per configuration (mean over seeds, 95% bootstrap band where >= 3 seeds have the point), like the thesis' Fig. 4.7. As the "
+              f"from, per configuration (mean over seeds, 95% bootstrap band where >= {MIN_SEEDS_FOR_VERDICT} seeds have "
+              "the point), like the thesis' Fig. 4.7. As the "
               "thesis notes, the MC reward is relative (normalised by percentiles of past KL values): compare "
               "its course over training, not its level, across tasks. An arm with another intrinsic reward "
               "(RND, ICM, Disagreement) logs its normalised reward in the same column and its own raw value "
