@@ -7,6 +7,8 @@
 #   bash docs/intrinsic/fetchpush/run.sh sync     # copy finished runs' small files here (then git commit them)
 #   bash docs/intrinsic/fetchpush/run.sh status
 #   bash docs/intrinsic/fetchpush/run.sh report   # docs/intrinsic/fetchpush/report, with SAC and SAC-MC
+#   bash docs/intrinsic/fetchpush/run.sh solo icm 0   # one run of a later phase alone (start or resume), for the
+#     core the sweep leaves idle while its phase's last run trains; the sweep skips or resumes it later
 #
 # COMMIT is 39e2344: SAC-MC seed 7 re-run with it for 10,000 steps gave rows identical to the reproduction's
 # (83e6d8d), so these arms and the reproduction's share one code path (docs/reproduction/fetchpush/rerun/).
@@ -43,5 +45,19 @@ case "${1:-status}" in
     [ -f "$WORK/$EXP/provenance.json" ] || write_provenance "$WORK/$EXP" "$COMMIT" \
       "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" ;;
-  *) echo "usage: $0 start|sync|status|report" >&2; exit 2 ;;
+  solo)
+    # the run the sweep would make (same config, directory and one-thread flags: mcrl.sweep.worker.thread_env),
+    # trained by `mcrl train` beside the sweep; it locks only its run directory, not the experiment
+    case "${2:-}" in rnd|icm|disagreement) ;; *) echo "usage: $0 solo rnd|icm|disagreement SEED" >&2; exit 2 ;; esac
+    [[ "${3:-}" =~ ^[0-9]+$ ]] || { echo "usage: $0 solo $2 SEED (a seed such as 0)" >&2; exit 2; }
+    install_code "$REPO" "$CODE" "$COMMIT"
+    dir="$WORK/$EXP/runs/intrinsic=$2-s$3"
+    [ -f "$dir/done" ] && { echo "intrinsic=$2-s$3 already finished"; exit 0; }
+    if ls -d "$dir"/checkpoints/step_* > /dev/null 2>&1; then how=(--resume "$dir")
+    else mkdir -p "$WORK/$EXP/runs"; how=(--preset fetchpush-sacmc-0.2 --set "intrinsic=$2" --seed "$3" --run-dir "$dir"); fi
+    (trap '' HUP; env XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \
+       OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 NUMEXPR_NUM_THREADS=1 VECLIB_MAXIMUM_THREADS=1 \
+       "$CODE/.venv/bin/mcrl" train "${how[@]}" --no-progress) >> "$WORK/$EXP-solo.log" 2>&1 &
+    echo "training intrinsic=$2-s$3 alone (log $WORK/$EXP-solo.log)" ;;
+  *) echo "usage: $0 start|sync|status|report|solo" >&2; exit 2 ;;
 esac
