@@ -46,7 +46,7 @@ case "${1:-status}" in
       "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" ;;
   solo)
-    # the run the sweep would make (same config, directory and one-thread flags: mcrl.sweep.worker.thread_env),
+    # the run the sweep would make (same config, directory, and one-thread flags from the sweep's own thread_env),
     # trained by `mcrl train` beside the sweep; it locks only its run directory, not the experiment (a sweep worker
     # that reaches the run while this trains it is refused by that lock: the sweep goes on with its other runs)
     case "${2:-}" in rnd|icm|disagreement) ;; *) echo "usage: $0 solo rnd|icm|disagreement SEED" >&2; exit 2 ;; esac
@@ -57,9 +57,10 @@ case "${1:-status}" in
     elif [ -e "$dir" ]; then echo "error: $dir has no checkpoint to resume: remove it to start the run over" >&2; exit 1
     else mkdir -p "$WORK/$EXP/runs"; how=(--preset fetchpush-sacmc-0.2 --set "intrinsic=$2" --seed "$3" --run-dir "$dir"); fi
     install_code "$REPO" "$CODE" "$COMMIT"
-    (trap '' HUP; env XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1" \
-       OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 NUMEXPR_NUM_THREADS=1 VECLIB_MAXIMUM_THREADS=1 \
-       "$CODE/.venv/bin/mcrl" train "${how[@]}" --no-progress) >> "$WORK/$EXP-solo.log" 2>&1 &
+    mapfile -d '' one_thread < <("$CODE/.venv/bin/python" -c \
+      'from mcrl.sweep.worker import thread_env; print("\0".join(f"{k}={v}" for k, v in thread_env(1).items()), end="")')
+    (trap '' HUP; env "${one_thread[@]}" "$CODE/.venv/bin/mcrl" train "${how[@]}" --no-progress) \
+      >> "$WORK/$EXP-solo.log" 2>&1 &
     echo "training intrinsic=$2-s$3 alone (log $WORK/$EXP-solo.log)" ;;
   *) echo "usage: $0 start|sync|status|report|solo" >&2; exit 2 ;;
 esac
