@@ -3,12 +3,15 @@
 # from a clone of one fixed commit, in the background; compared with the reproduction's SAC and SAC-MC arms.
 #
 #   bash docs/intrinsic/fetchpush/run.sh start    # clone + install (once), then start or resume the sweep
-#     WORKERS=N runs at once (default 2, one thread each)
+#     WORKERS=N runs at once (default 1, one thread each: on the 2-core Zen 4 machine two one-thread runs went at about
+#     half speed each, so one at a time finishes each run in half the time for about 8% fewer steps in all, and a
+#     run fits in one session, where a machine that changes between sessions loses the run in progress;
+#     docs/intrinsic.md has the numbers)
 #   bash docs/intrinsic/fetchpush/run.sh sync     # copy finished runs' small files here (then git commit them)
 #   bash docs/intrinsic/fetchpush/run.sh status
 #   bash docs/intrinsic/fetchpush/run.sh report   # docs/intrinsic/fetchpush/report, with SAC and SAC-MC
-#   bash docs/intrinsic/fetchpush/run.sh solo icm 0   # one run of a later phase alone (start or resume), for the
-#     core the sweep leaves idle while its phase's last run trains; the sweep skips or resumes it later
+#   bash docs/intrinsic/fetchpush/run.sh solo icm 0   # one planned run (start or resume) outside the sweep, e.g.
+#     one of a later phase; the sweep skips or resumes it later. Beside a running sweep both go at about half speed
 #
 # COMMIT is 39e2344: SAC-MC seed 7 re-run with it for 10,000 steps gave rows identical to the reproduction's
 # (83e6d8d), so these arms and the reproduction's share one code path (docs/reproduction/fetchpush/rerun/).
@@ -38,12 +41,12 @@ case "${1:-status}" in
     if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
     # RND and Disagreement (the issue's two arms) first, then ICM into the same directory; each skips finished runs
     (trap '' HUP; for f in sweep.yaml sweep-icm.yaml; do
-       "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$f" --workers "${WORKERS:-2}" --threads-per-run 1 \
+       "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$f" --workers "${WORKERS:-1}" --threads-per-run 1 \
          --exp "$WORK/$EXP" --no-progress || exit
      done) >> "$WORK/$EXP.log" 2>&1 &
     echo "started the sweep: RND and Disagreement, then ICM (log $WORK/$EXP.log)"
     [ -f "$WORK/$EXP/provenance.json" ] || write_provenance "$WORK/$EXP" "$COMMIT" \
-      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-2} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
+      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-1} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" ;;
   solo)
     # the run the sweep would make (same config, directory, and one-thread flags from the sweep's own thread_env),
