@@ -24,6 +24,7 @@ COMMIT="$(cat "$HERE/COMMIT")"
 WORK="${WORK:-/work/repro/intrinsic}"
 CODE="$WORK/mcrl-$COMMIT"
 EXP=arms
+WORKERS="${WORKERS:-1}"
 . "$REPO/docs/background-runs.sh"
 py() { if [ -x "$CODE/.venv/bin/python" ]; then "$CODE/.venv/bin/python" "$@"; else python3 "$@"; fi; }
 
@@ -41,12 +42,12 @@ case "${1:-status}" in
     if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
     # RND and Disagreement (the two arms) first, then ICM into the same directory; each skips finished runs
     (trap '' HUP; for f in sweep.yaml sweep-icm.yaml; do
-       "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$f" --workers "${WORKERS:-1}" --threads-per-run 1 \
+       "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$f" --workers "$WORKERS" --threads-per-run 1 \
          --exp "$WORK/$EXP" --no-progress || exit
      done) >> "$WORK/$EXP.log" 2>&1 &
     echo "started the sweep: RND and Disagreement, then ICM (log $WORK/$EXP.log)"
     [ -f "$WORK/$EXP/provenance.json" ] || write_provenance "$WORK/$EXP" "$COMMIT" \
-      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers ${WORKERS:-1} --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
+      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers $WORKERS --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" ;;
   solo)
     # the run the sweep would make (same config, directory, and one-thread flags from the sweep's own thread_env),
