@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Start or resume issue 29's FetchPush arms (RND and Disagreement, then ICM; fetchpush-sacmc-0.2's settings, seeds 0-5)
+# Start or resume issue 29's FetchPush arms (RND and Disagreement seeds 0-5, then ICM seeds 0-5, then RND and
+# Disagreement seeds 6-11; fetchpush-sacmc-0.2's settings)
 # from a clone of one fixed commit, in the background; compared with the reproduction's SAC and SAC-MC arms.
 #
 #   bash docs/intrinsic/fetchpush/run.sh start    # clone + install (once), then start or resume the sweep
@@ -40,14 +41,15 @@ case "${1:-status}" in
     install_code "$REPO" "$CODE" "$COMMIT"
     restore_runs "$HERE/$EXP" "$WORK/$EXP"
     if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
-    # RND and Disagreement (the issue's two arms) first, then ICM into the same directory; each skips finished runs
-    (trap '' HUP; for f in sweep.yaml sweep-icm.yaml; do
+    # RND and Disagreement (the issue's two arms) first, then ICM, then their seeds 6-11, all into the same directory;
+    # each skips finished runs
+    (trap '' HUP; for f in sweep.yaml sweep-icm.yaml sweep-seeds-6-11.yaml; do
        "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$f" --workers "$WORKERS" --threads-per-run 1 \
          --exp "$WORK/$EXP" --no-progress || exit
      done) >> "$WORK/$EXP.log" 2>&1 &
-    echo "started the sweep: RND and Disagreement, then ICM (log $WORK/$EXP.log)"
+    echo "started the sweep: RND and Disagreement, then ICM, then seeds 6-11 (log $WORK/$EXP.log)"
     [ -f "$WORK/$EXP/provenance.json" ] || write_provenance "$WORK/$EXP" "$COMMIT" \
-      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers $WORKERS --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml" \
+      "mcrl sweep --file docs/intrinsic/fetchpush/sweep.yaml --workers $WORKERS --threads-per-run 1 --exp EXP; the same with sweep-icm.yaml, then sweep-seeds-6-11.yaml" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.2 --set intrinsic=rnd --seed N  (or icm, disagreement)" ;;
   solo)
     # the run the sweep would make (same config, directory, and one-thread flags from the sweep's own thread_env),
