@@ -10,6 +10,8 @@
 #     docs/intrinsic.md has the numbers)
 #   bash docs/intrinsic/fetchpush/run.sh sync     # copy finished runs' small files here (then git commit them)
 #   bash docs/intrinsic/fetchpush/run.sh status
+#   bash docs/intrinsic/fetchpush/run.sh stop     # SIGTERM the sweep: the run in progress saves a checkpoint at its
+#     episode's end and stops (a session's end may kill it without one, losing up to 10,000 steps); `start` resumes
 #   bash docs/intrinsic/fetchpush/run.sh report   # docs/intrinsic/fetchpush/report, with SAC and SAC-MC
 #   bash docs/intrinsic/fetchpush/run.sh solo icm 0   # one planned run (start or resume) outside the sweep, e.g.
 #     one of a later phase; the sweep skips or resumes it later. Beside a running sweep both go at about half speed
@@ -35,6 +37,11 @@ case "${1:-status}" in
     check_not_ignored "$REPO" "$HERE/$EXP"/runs/*/config.json ;;
   status)
     arm_status "$EXP" "$WORK/$EXP" "$HERE/$EXP" ;;
+  stop)
+    sweep_pattern="sweep .*--exp $WORK/$EXP( |\$)"
+    pkill -TERM -f "$sweep_pattern" || { echo "no sweep running"; exit 0; }
+    while pgrep -f "$sweep_pattern" > /dev/null; do sleep 2; done
+    tail -n 3 "$WORK/$EXP.log" ;;
   report)
     "$REPO/.venv/bin/mcrl" report "$HERE/$EXP" --with "$REPO/docs/reproduction/fetchpush/main" --out "$HERE/report" ;;
   start)
@@ -68,5 +75,5 @@ case "${1:-status}" in
     (trap '' HUP; env "${one_thread[@]}" "$CODE/.venv/bin/mcrl" train "${how[@]}" --no-progress) \
       >> "$WORK/$EXP-solo.log" 2>&1 &
     echo "training intrinsic=$2-s$3 alone (log $WORK/$EXP-solo.log)" ;;
-  *) echo "usage: $0 start|sync|status|report|solo" >&2; exit 2 ;;
+  *) echo "usage: $0 start|stop|sync|status|report|solo" >&2; exit 2 ;;
 esac
