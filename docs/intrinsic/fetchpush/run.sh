@@ -28,6 +28,7 @@ WORK="${WORK:-/work/repro/intrinsic}"
 CODE="$WORK/mcrl-$COMMIT"
 EXP=arms
 WORKERS="${WORKERS:-1}"
+SWEEP="sweep .*--exp $WORK/$EXP( |\$)"  # this experiment's `mcrl sweep` driver, for pgrep/pkill -f
 . "$REPO/docs/background-runs.sh"
 py() { if [ -x "$CODE/.venv/bin/python" ]; then "$CODE/.venv/bin/python" "$@"; else python3 "$@"; fi; }
 
@@ -38,16 +39,15 @@ case "${1:-status}" in
   status)
     arm_status "$EXP" "$WORK/$EXP" "$HERE/$EXP" ;;
   stop)
-    sweep_pattern="sweep .*--exp $WORK/$EXP( |\$)"
-    pkill -TERM -f "$sweep_pattern" || { echo "no sweep running"; exit 0; }
-    while pgrep -f "$sweep_pattern" > /dev/null; do sleep 2; done
+    pkill -TERM -f "$SWEEP" || { echo "no sweep running"; exit 0; }
+    while pgrep -f "$SWEEP" > /dev/null; do sleep 2; done
     tail -n 3 "$WORK/$EXP.log" ;;
   report)
     "$REPO/.venv/bin/mcrl" report "$HERE/$EXP" --with "$REPO/docs/reproduction/fetchpush/main" --out "$HERE/report" ;;
   start)
     install_code "$REPO" "$CODE" "$COMMIT"
     restore_runs "$HERE/$EXP" "$WORK/$EXP"
-    if pgrep -f "sweep .*--exp $WORK/$EXP( |$)" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
+    if pgrep -f "$SWEEP" > /dev/null; then echo "sweep already running (log $WORK/$EXP.log)"; exit 0; fi
     # RND and Disagreement (the two arms) first, then ICM, then their seeds 6-11, all into the same directory;
     # each skips finished runs
     (trap '' HUP; for f in sweep.yaml sweep-icm.yaml sweep-seeds-6-11.yaml; do
