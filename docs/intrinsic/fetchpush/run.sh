@@ -39,8 +39,13 @@ case "${1:-status}" in
   status)
     arm_status "$EXP" "$WORK/$EXP" "$HERE/$EXP" ;;
   stop)
+    # times and the last logged step, so a slow stop can be told apart from a slow step
+    arm_status "$EXP" "$WORK/$EXP" "$HERE/$EXP" | grep "in progress" || true
+    t0=$(date +%s)
     pkill -TERM -f "$SWEEP" || { echo "no sweep running"; exit 0; }
+    echo "SIGTERM sent to the sweep at $(date +%T)"
     while pgrep -f "$SWEEP" > /dev/null; do sleep 2; done
+    echo "the sweep ended at $(date +%T), $(( $(date +%s) - t0 )) s after the signal"
     tail -n 3 "$WORK/$EXP.log" ;;
   report)
     "$REPO/.venv/bin/mcrl" report "$HERE/$EXP" --with "$REPO/docs/reproduction/fetchpush/main" --out "$HERE/report" ;;
