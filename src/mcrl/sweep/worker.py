@@ -31,6 +31,9 @@ def cpu_count() -> int:
 def thread_env(threads: int, base: dict[str, str] | None = None) -> dict[str, str]:
     """Environment variables that limit one run to `threads` threads; set before jax is imported.
 
+    On jax 0.10.2 the XLA flags among them do not keep XLA to one core (`benchmarks/xla_threads.py`: a matmul
+    loop uses both cores of a 2-core machine with them as without them); pinning the process to cores does.
+
     The driver's other XLA flags are kept, so a run sees the same flags on every backend."""
     base = os.environ if base is None else base
     keep = [f for f in base.get("XLA_FLAGS", "").split()
