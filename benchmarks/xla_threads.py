@@ -48,8 +48,9 @@ def main() -> None:
         sys.exit("xla_threads: this platform has no os.sched_setaffinity (Linux only)")
     from mcrl.sweep.worker import thread_env
 
-    base = {k: v for k, v in os.environ.items() if k not in thread_env(1)}
-    variants = {"default": (base, "0"), "flags": ({**base, **thread_env(1)}, "0"), "pinned": (base, "1")}
+    limits = thread_env(1)
+    base = {k: v for k, v in os.environ.items() if k not in limits}
+    variants = {"default": (base, "0"), "flags": ({**base, **limits}, "0"), "pinned": (base, "1")}
     print(f"{_common.usable_cores()} usable cores; {a.size}x{a.size} float32 matmul, {a.seconds:g} s, "
           f"median of {a.repeats}")
     for name, (env, pin) in variants.items():
