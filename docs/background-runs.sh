@@ -21,10 +21,15 @@ install_code() {
 }
 
 # restore_runs COMMITTED WORK: finished runs from git back into the work directory (the sweep skips them), and
-# the committed sweep.json where the work directory has none, so a new machine resumes where git left off
+# the committed sweep.json and provenance.json where the work directory has none, so a new machine resumes where
+# git left off (without provenance.json, `start` would write a fresh one and the next sync would drop the
+# committed command and the machines of earlier runs)
 restore_runs() {
   if [ -d "$1/runs" ]; then mkdir -p "$2/runs"; cp -rn "$1/runs/." "$2/runs/"; fi
-  if [ -f "$1/sweep.json" ] && [ ! -f "$2/sweep.json" ]; then mkdir -p "$2" && cp "$1/sweep.json" "$2/"; fi
+  local f
+  for f in sweep.json provenance.json; do
+    if [ -f "$1/$f" ] && [ ! -f "$2/$f" ]; then mkdir -p "$2" && cp "$1/$f" "$2/"; fi
+  done
 }
 
 # sync_runs PYTHON REPO WORK COMMITTED: finished runs' small files into git's tree (sync_runs.py, stdlib only,
