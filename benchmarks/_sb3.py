@@ -17,7 +17,8 @@ from typing import Any
 
 #: Per-gradient-step diagnostics ParitySAC sums (all are METRIC_COLUMNS of mcrl.run.logger).
 DIAGNOSTICS = ("actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean", "mean_ext_reward",
-               "mean_total_reward")
+               "mean_total_reward", "saturated_share", "logp_gap")
+GOAL_MOVED = 0.01  # as mcrl.run.member.GOAL_MOVED: the achieved goal ended more than 1 cm from its start
 
 #: Where an SB3 run keeps its checkpoints (mcrl's tools read ``checkpoints/`` as their own format).
 CHECKPOINTS = "sb3_checkpoints"
@@ -148,6 +149,12 @@ def make_parity_sac_class():
                 # The current policy on the batch: used by the entropy-coefficient loss and the actor loss.
                 actions_pi, log_prob = self.actor.action_log_prob(batch.observations)
                 log_prob = log_prob.reshape(-1, 1)
+                with th.no_grad():  # mcrl.algo.sac.saturation of the same pre-tanh sample (no RNG drawn)
+                    u = self.actor.action_dist.gaussian_actions.double()
+                    exact = 2.0 * (math.log(2.0) - u - F.softplus(-2.0 * u))  # log(1 - tanh(u)^2) per entry
+                    eps = th.log(1.0 - th.tanh(u.float()) ** 2 + 1e-6).double()
+                    per_step["saturated_share"].append((exact < math.log(1e-6)).double().mean().item())
+                    per_step["logp_gap"].append((eps - exact).sum(-1).mean().item())
 
                 if learn_ent:
                     alpha = th.exp(self.log_ent_coef.detach())  # this step's coefficient, before its update
@@ -384,7 +391,8 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
             r = resume or {}
             self.episodes = r.get("episodes", 0)
             self.eval_round = r.get("eval_round", 0)
-            self.interval = r.get("interval", {"returns": [], "successes": []})
+            self.interval = {"moved": [], **r.get("interval", {"returns": [], "successes": []})}
+            self.start_goal = None  # the achieved goal at the episode's start (checkpoints fall at episode ends)
             self.last_eval: dict[str, Any] = r.get("last_eval", {"success_rate": None, "mean_return": None})
             self.elapsed0 = r.get("elapsed", 0.0)  # training time before this process (time_s continues)
             self.done_step = r.get("step", 0)  # the last step whose rows are written
@@ -402,8 +410,15 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
             self.t_start = time.perf_counter() - self.elapsed0
 
         def _on_step(self) -> bool:
+            last = self.model._last_obs  # the observation this step's action answered (stored after _on_step)
+            if self.start_goal is None and isinstance(last, dict) and "achieved_goal" in last:
+                self.start_goal = np.array(last["achieved_goal"][0])
             for info, done in zip(self.locals["infos"], self.locals["dones"]):
                 if done:
+                    if self.start_goal is not None:
+                        end = np.asarray(info["terminal_observation"]["achieved_goal"])
+                        self.interval["moved"].append(float(np.linalg.norm(end - self.start_goal) > GOAL_MOVED))
+                        self.start_goal = None
                     ep = info.get("episode")  # SB3's Monitor wrapper: the episode's return and length
                     self.interval["returns"].append(float(ep["r"]))
                     s = success_of(info)
@@ -442,11 +457,12 @@ def _make_recorder(cfg, run_dir: Path, model, evaluator: Evaluator, progress: bo
                 row = {"step": step, "time_s": round(elapsed, 3), "steps_per_s": sps, "episodes": self.episodes,
                        "train_return": float(np.mean(iv["returns"])) if iv["returns"] else None,
                        "train_success_rate": float(np.mean(iv["successes"])) if iv["successes"] else None,
+                       "train_goal_moved": float(np.mean(iv["moved"])) if iv["moved"] else None,
                        "eval_success_rate": self.last_eval["success_rate"],
                        "eval_mean_return": self.last_eval["mean_return"],
                        **model.read_diagnostics()}
                 append_row(run_dir / "metrics.csv", METRIC_COLUMNS, row)
-                self.interval = {"returns": [], "successes": []}
+                self.interval = {"returns": [], "successes": [], "moved": []}
                 if self.bar is not None:
                     post = {"sps": f"{sps:.0f}" if sps else "-"}
                     if self.last_eval["success_rate"] is not None:

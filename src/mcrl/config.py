@@ -35,6 +35,7 @@ class Config:
     ent_coef_init: float = 1.0  # 'auto' entropy coefficient, initial value (stable-baselines3's default)
     target_entropy: float | None = None  # None = -|A|
     init: str = "torch"  # torch: weights and biases ~ U(+-1/sqrt(fan_in)) like torch's Linear | flax: LeCun normal, zero bias
+    squash_correction: str = "exact"  # exact: log(1 - tanh(u)^2) | epsilon: log(1 - a^2 + 1e-6), as SB3 and the thesis' code
     matmul_precision: str = "float32"  # float32 | bfloat16: layer inputs and kernels rounded to bfloat16 for the
     # matmuls, with float32 accumulation; parameters and everything else stay float32
     # --- HER ---
@@ -113,8 +114,12 @@ class Config:
         if "init" not in d and "mc_history" in d:
             raise MCRLError("this config.json was written by mcrl 0.1 (it has no `init`): convert its run directory "
                             "with `python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
-        return cls.from_dict(d)
+        # a run trained before a key existed resumes with the behaviour it was trained with, whatever its default now
+        return cls.from_dict({**TRAINED_BEFORE_KEY, **d})
 
+
+# the value a key had in effect before it existed, for config.json files written then (`Config.from_run_json`)
+TRAINED_BEFORE_KEY: dict[str, Any] = {"squash_correction": "exact"}
 
 INTRINSIC = ("mc", "rnd", "icm", "disagreement")  # `intrinsic`'s values: mcrl.algo.intrinsic builds each
 
@@ -126,6 +131,8 @@ KEY_NOTES: dict[str, str] = {
     "mc_lr": "Adam learning rate of the intrinsic reward's models (any `intrinsic`)",
     "mc_hidden_sizes": "MC models' hidden layers; rnd/icm/disagreement use their papers' depths at its widest width",
     "mc_state": "the state every intrinsic reward sees: observation | full (+ achieved and desired goal)",
+    "squash_correction": "tanh log-prob correction: exact log(1 - tanh(u)^2) | epsilon log(1 - a^2 + 1e-6) "
+                         "(stable-baselines3 and the thesis' code; at most 13.8 nats per action entry)",
 }
 
 _FETCHPUSH = dict(env_id="FetchPush-v4", total_steps=150_000, learning_rate=3e-4, buffer_size=1_000_000,
@@ -254,6 +261,9 @@ def validate(cfg: Config) -> None:
             f"intrinsic={cfg.intrinsic}: drop it (mc_reduction=transition)")
     if cfg.init not in ("torch", "flax"):
         bad(f"init={cfg.init!r}: choose torch (as stable-baselines3 and the thesis' code) or flax")
+    if cfg.squash_correction not in ("exact", "epsilon"):
+        bad(f"squash_correction={cfg.squash_correction!r}: choose exact (log(1 - tanh(u)^2)) or epsilon "
+            "(log(1 - a^2 + 1e-6), as stable-baselines3 and the thesis' code)")
     if cfg.matmul_precision not in ("float32", "bfloat16"):
         bad(f"matmul_precision={cfg.matmul_precision!r}: choose float32 (the default) or bfloat16 "
             "(bfloat16 matmul inputs, float32 accumulation and parameters)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 UPDATE_METRICS = ("actor_loss", "critic_loss", "ent_coef", "ent_coef_loss", "q_mean", "transition_model_loss",
                   "action_model_loss", "mean_ext_reward", "mean_mc_reward", "mean_total_reward", "mean_raw_kl",
-                  "intrinsic_loss", "mean_raw_intrinsic")
+                  "intrinsic_loss", "mean_raw_intrinsic", "saturated_share", "logp_gap")
 MC_METRICS = ("transition_model_loss", "action_model_loss", "mean_mc_reward", "mean_raw_kl")  # only with MC models
 # only with RND, ICM or Disagreement models; `mean_mc_reward` (the normalised intrinsic reward) is theirs too
 INTRINSIC_METRICS = ("intrinsic_loss", "mean_raw_intrinsic", "mean_mc_reward")

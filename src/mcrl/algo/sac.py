@@ -35,8 +35,8 @@ from mcrl.algo.rnd import RND
 from mcrl.config import Config
 from mcrl.replay import Batch
 
-__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "MCStep", "TrainState",
-           "tanh_gaussian_sample"]
+__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "MCStep", "SQUASH_CORRECTIONS",
+           "TrainState", "saturation", "squash_log_det", "tanh_gaussian_sample"]
 
 INTRINSIC_MODELS = {"rnd": RND, "icm": ICM, "disagreement": Disagreement}  # `intrinsic` -> its models (not mc)
 
@@ -108,13 +108,42 @@ class IntrinsicStep(NamedTuple):
     untrained: Any  # the models' untrained part after this batch
 
 
-def tanh_gaussian_sample(mean, log_std, key):
-    """Reparameterised tanh-squashed Gaussian sample and its log-probability."""
+SQUASH_CORRECTIONS = ("exact", "epsilon")
+SATURATED = 1e-6  # an action entry with 1 - tanh(u)^2 below this is saturated: `epsilon` caps its correction
+
+
+def squash_log_det(u, correction: str = "exact"):
+    """log |d tanh(u) / du| = log(1 - tanh(u)^2), summed over the last axis, as `correction` computes it:
+    "exact" in a numerically stable form (unbounded as |u| grows); "epsilon" as stable-baselines3 and the
+    thesis' (CleanRL-style) code do, log(1 - a^2 + 1e-6) of the float32 action a = tanh(u), which is never below
+    log(1e-6) = -13.8 nats per entry, so saturated (bang-bang) actions cost less entropy."""
+    if correction == "exact":
+        return (2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))).sum(-1)
+    if correction == "epsilon":
+        a = jnp.tanh(u)
+        return jnp.log(1.0 - jnp.square(a) + 1e-6).sum(-1)
+    raise ValueError(f"unknown squash_correction {correction!r}: choose one of {SQUASH_CORRECTIONS}")
+
+
+def gaussian_sample(mean, log_std, key):
+    """Reparameterised Gaussian sample u (before the tanh) and its log-density, summed over the last axis."""
     u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
     logp = (-0.5 * jnp.square((u - mean) * jnp.exp(-log_std)) - log_std - 0.5 * jnp.log(2 * jnp.pi)).sum(-1)
-    # log(1 - tanh(u)^2) in a numerically stable form
-    logp -= (2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))).sum(-1)
-    return jnp.tanh(u), logp
+    return u, logp
+
+
+def tanh_gaussian_sample(mean, log_std, key, correction: str = "exact"):
+    """Reparameterised tanh-squashed Gaussian sample and its log-probability (`squash_log_det`'s correction)."""
+    u, logp = gaussian_sample(mean, log_std, key)
+    return jnp.tanh(u), logp - squash_log_det(u, correction)
+
+
+def saturation(u) -> dict[str, jax.Array]:
+    """Diagnostics of the squash on pre-tanh samples u: the share of entries with 1 - tanh(u)^2 < 1e-6, and the
+    mean (over samples) of exact minus epsilon log-probability (>= 0: how much `epsilon` lowers log pi)."""
+    log_det = squash_log_det(u[..., None], "exact")  # per entry
+    return {"saturated_share": (log_det < jnp.log(SATURATED)).mean(),
+            "logp_gap": (squash_log_det(u, "epsilon") - squash_log_det(u, "exact")).mean()}
 
 
 @dataclass(frozen=True)
@@ -177,7 +206,7 @@ class Agent:
     # ------------------------------------------------------------------ acting
     def act(self, actor_params, obs, key):
         mean, log_std = self.actor_net.apply({"params": actor_params}, obs)
-        return tanh_gaussian_sample(mean, log_std, key)[0]
+        return jnp.tanh(gaussian_sample(mean, log_std, key)[0])
 
     def act_deterministic(self, actor_params, obs):
         return jnp.tanh(self.actor_net.apply({"params": actor_params}, obs)[0])
@@ -256,7 +285,7 @@ class Agent:
 
         # critics
         mean_n, log_std_n = self.actor_net.apply({"params": state.pi.params}, batch.next_obs)
-        a_next, logp_next = tanh_gaussian_sample(mean_n, log_std_n, k_next)
+        a_next, logp_next = tanh_gaussian_sample(mean_n, log_std_n, k_next, cfg.squash_correction)
         q_next = self.critic_net.apply({"params": state.q_target}, batch.next_obs, a_next).min(0)
         target = reward + (1.0 - batch.terminated) * h.gamma * (q_next - ent_coef * logp_next)
         target = jax.lax.stop_gradient(target)
@@ -271,11 +300,12 @@ class Agent:
         # actor (against the updated critics, as stable-baselines3 does)
         def actor_loss_fn(params):
             mean, log_std = self.actor_net.apply({"params": params}, batch.obs)
-            a_pi, logp = tanh_gaussian_sample(mean, log_std, k_pi)
-            q_pi = self.critic_net.apply({"params": q.params}, batch.obs, a_pi).min(0)
-            return (ent_coef * logp - q_pi).mean(), logp
+            u, logp = gaussian_sample(mean, log_std, k_pi)
+            logp = logp - squash_log_det(u, cfg.squash_correction)
+            q_pi = self.critic_net.apply({"params": q.params}, batch.obs, jnp.tanh(u)).min(0)
+            return (ent_coef * logp - q_pi).mean(), (logp, u)
 
-        (actor_loss, logp), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.pi.params)
+        (actor_loss, (logp, u_pi)), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.pi.params)
         pi = self._adam(state.pi, g, h.learning_rate)
 
         # entropy coefficient, from the same (pre-update) policy sample
@@ -286,6 +316,7 @@ class Agent:
         q_target = optax.incremental_update(q.params, state.q_target, h.tau)
 
         m.update(actor_loss=actor_loss, critic_loss=critic_loss, ent_coef=ent_coef, ent_coef_loss=ent_loss,
-                 q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean())
+                 q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean(),
+                 **saturation(jax.lax.stop_gradient(u_pi)))
         return TrainState(pi=pi, q=q, q_target=q_target, ent=ent, mc_models=mc_models, norm=norm, key=key,
                           grad_steps=state.grad_steps + 1, intrinsic=intrinsic), m

@@ -33,6 +33,13 @@ from mcrl.run.logger import RunLogger
 from mcrl.run.policy import build, restore_run
 
 
+GOAL_MOVED = 0.01  # an episode "moved its goal" when the achieved goal ends more than this (1 cm on Fetch) from its start
+
+
+def _new_interval() -> dict:
+    return {"returns": [], "successes": [], "moved": []}
+
+
 @dataclass
 class Progress:
     """The loop's counters of one run; JSON in a checkpoint's meta.json."""
@@ -40,7 +47,7 @@ class Progress:
     step: int = 0
     episode: int = 0
     eval_round: int = 0
-    interval: dict = field(default_factory=lambda: {"returns": [], "successes": []})  # since the last log row
+    interval: dict = field(default_factory=_new_interval)  # since the last log row
     last_eval: dict = field(default_factory=lambda: {"success_rate": None, "mean_return": None})
 
 
@@ -57,6 +64,7 @@ class Member:
         self.evaluator = Evaluator(cfg, agent)
         self.obs: np.ndarray | None = None  # the flat observation the next action answers
         self.ep_return = 0.0
+        self.ep_start_goal: np.ndarray | None = None  # the achieved goal at the episode's start (goal envs)
         self.last_ckpt, self.ckpt_due = progress.step, False
 
     # ------------------------------------------------------------------ acting and storing (every step)
@@ -67,7 +75,12 @@ class Member:
         """A warm-up action (before `learning_starts`): uniform in [-1, 1]."""
         return self.rng.uniform(-1.0, 1.0, self.agent.act_dim).astype(np.float32)
 
+    def _achieved_goal(self) -> np.ndarray:
+        return self.obs[self.buffer.od: self.buffer.od + self.buffer.gd]
+
     def store(self, action: np.ndarray, next_obs: np.ndarray, reward: float, terminated: bool, truncated: bool) -> None:
+        if self.ep_start_goal is None and self.buffer.gd:
+            self.ep_start_goal = self._achieved_goal().copy()
         self.buffer.add(self.obs, action, reward, next_obs, terminated, terminated or truncated)
         self.ep_return += float(reward)
         self.progress.step += 1
@@ -83,6 +96,10 @@ class Member:
         p.interval["returns"].append(self.ep_return)
         if success is not None:
             p.interval["successes"].append(success)
+        if self.ep_start_goal is not None:  # did the episode move what the goal measures (Fetch: the object)?
+            moved = float(np.linalg.norm(self._achieved_goal() - self.ep_start_goal) > GOAL_MOVED)
+            p.interval.setdefault("moved", []).append(moved)  # a checkpoint older than this key has none
+            self.ep_start_goal = None
         p.episode += 1
         self.ep_return = 0.0
         self.ckpt_due = p.step - self.last_ckpt >= self.cfg.checkpoint_every and p.step < self.cfg.total_steps
@@ -105,10 +122,11 @@ class Member:
         mean = lambda xs: float(np.mean(xs)) if xs else None  # noqa: E731
         row = {"step": p.step, "time_s": round(elapsed, 3), "steps_per_s": sps, "episodes": p.episode,
                "train_return": mean(p.interval["returns"]), "train_success_rate": mean(p.interval["successes"]),
+               "train_goal_moved": mean(p.interval.get("moved", [])),
                "eval_success_rate": p.last_eval["success_rate"], "eval_mean_return": p.last_eval["mean_return"],
                **metrics}
         self.log.log_metrics(row)
-        p.interval = {"returns": [], "successes": []}
+        p.interval = _new_interval()
         return row
 
     def save(self, state: TrainState, diag: Diagnostics) -> None:

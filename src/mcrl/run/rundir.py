@@ -48,7 +48,7 @@ SMALL_FILES = (CONFIG, METRICS, EVAL, FINAL_EVAL, PEER, DONE)  # what an experim
 
 # metrics.csv: the loop's columns around the gradient step's metrics (mcrl.algo.metrics)
 METRIC_COLUMNS = ("step", "time_s", "steps_per_s", "episodes", "train_return", "train_success_rate",
-                  "eval_success_rate", "eval_mean_return", *UPDATE_METRICS, "mc_bound_low", "mc_bound_high")
+                  "train_goal_moved", "eval_success_rate", "eval_mean_return", *UPDATE_METRICS, "mc_bound_low", "mc_bound_high")
 EVAL_COLUMNS = ("step", "success_rate", "mean_return", "episodes")
 TIMING_COLUMNS = ("time_s", "steps_per_s")  # wall-clock: the only columns that differ between identical runs
 LEARNING_COLUMNS = tuple(c for c in METRIC_COLUMNS if c not in TIMING_COLUMNS)
