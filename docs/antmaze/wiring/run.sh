@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Issue 51 item 4: antmaze-sac and antmaze-sacmc seed 0 to 20,000 steps (sweep.yaml) from a clone of COMMIT, in
+# the background, one run at a time; then the report (MC reward and KL curves) and one rendered episode of the
+# SAC-MC run with its MC timeline.
+#
+#   bash docs/antmaze/wiring/run.sh start    # clone + install (once), then start or resume the sweep
+#   bash docs/antmaze/wiring/run.sh sync     # finished runs' small files into runs/ here
+#   bash docs/antmaze/wiring/run.sh status
+#   bash docs/antmaze/wiring/run.sh report   # report/ (curves, MC reward and raw KL) from what is committed here
+#   bash docs/antmaze/wiring/run.sh render   # episode.mp4: one episode of the SAC-MC run's final policy
+set -euo pipefail
+HERE="$(cd "$(dirname "$0")" && pwd)"
+REPO="$(cd "$HERE/../../.." && pwd)"
+COMMIT="$(cat "$HERE/COMMIT")"
+WORK="${WORK:-/work/repro/antmaze-wiring}"
+CODE="/work/repro/mcrl-$COMMIT"
+. "$REPO/docs/background-runs.sh"
+SWEEP="sweep .*--exp $WORK( |\$)"
+
+case "${1:-status}" in
+  sync)
+    sync_runs "$CODE/.venv/bin/python" "$REPO" "$WORK" "$HERE"
+    check_not_ignored "$REPO" "$HERE"/runs/*/config.json ;;
+  status)
+    arm_status antmaze "$WORK" "$HERE" ;;
+  report)
+    "$REPO/.venv/bin/mcrl" report "$HERE" --out "$HERE/report" ;;
+  render)
+    MUJOCO_GL="${MUJOCO_GL:-egl}" "$CODE/.venv/bin/mcrl" render "$WORK/runs/a0.2-s0" --episodes 1 --format mp4 \
+      --out "$HERE/episode.mp4" --no-progress ;;
+  start)
+    install_code "$REPO" "$CODE" "$COMMIT"
+    restore_runs "$HERE" "$WORK"
+    if pgrep -f "$SWEEP" > /dev/null; then echo "sweep already running (log $WORK.log)"; exit 0; fi
+    (trap '' HUP; "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" --workers 1 --threads-per-run 1 --exp "$WORK" \
+       --no-progress) >> "$WORK.log" 2>&1 &
+    echo "started the sweep (log $WORK.log)"
+    [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" \
+      "mcrl sweep --file docs/antmaze/wiring/sweep.yaml --workers 1 --threads-per-run 1 --exp EXP" \
+      "git checkout $COMMIT && mcrl train --preset antmaze-sac --steps 20000 --seed 0  (or --preset antmaze-sacmc)" ;;
+  *) echo "usage: $0 start|sync|status|report|render" >&2; exit 2 ;;
+esac
