@@ -37,6 +37,24 @@ def test_rank_sum_test_matches_scipy_without_ties() -> None:
         h.rank_sum_test([], [1.0])
 
 
+def test_midranks_and_the_grid() -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        v = rng.integers(0, 5, int(rng.integers(1, 15))) / 4
+        np.testing.assert_array_equal(h.midranks(v), scipy.stats.rankdata(v))
+    assert 0.28 - (0.75 - 0.52) != 0.05 and h.on_grid([0.28 - (0.75 - 0.52), np.nan]).tolist() == [0.05]
+    # a shift is the same test as shifting by hand on the grid
+    x, y = [0.28, 0.38, 0.7, 0.1], [0.05, 0.15, 0.2, 0.9]
+    assert h.rank_sum_test(x, y, "less", shift=0.75 - 0.52) == h.rank_sum_test([0.05, 0.15, 0.47, -0.13], y, "less")
+
+
+def test_tost_power() -> None:
+    assert h.tost_power(12, 12, 0.115, 0.05, 0.05, 0.05) > 0.9  # no difference, tight scores: shown
+    assert h.tost_power(6, 6, 0.115, 0.28, 0.28, 0.01) == 0.0  # FetchPush's spread at Holm's 0.05 / 5: never
+    assert h.tost_power(12, 12, 0.115, 0.05, 0.05, 0.05, difference=0.115) <= 0.05 + 0.005  # at the margin: the level
+    assert math.isnan(h.tost_power(6, 6, 0.1, 0.0, 0.1))
+
+
 def test_holm() -> None:
     assert h.holm([0.01, 0.04, 0.03]) == pytest.approx([0.03, 0.06, 0.06])
     assert h.holm([0.5, 0.01]) == pytest.approx([0.5, 0.02])
