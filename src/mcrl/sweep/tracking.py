@@ -1,10 +1,10 @@
 """MLflow tracking of a sweep (``mcrl sweep --tracking``).
 
 One MLflow experiment per sweep, one MLflow run per mcrl run (named like the run), logged by the
-sweep driver when the run finishes: params = the resolved config, metrics = the series of
-metrics.csv (column names as they are) and eval.csv (``eval/success_rate``, ``eval/mean_return``)
-with their env steps, artifacts = the run's learning-curve plot (``mcrl.analysis.plots.plot_run``), its
-config.json and the two CSVs.
+sweep driver when the run finishes: params = the resolved config, metrics = one name per metric
+(:func:`metric_series`: metrics.csv's columns as they are named in its header, the evaluations from
+eval.csv as ``eval/success_rate`` and ``eval/mean_return``) with their env steps, artifacts = the run's
+learning-curve plot (``mcrl.analysis.plots.plot_run``), its config.json and the two CSVs.
 
 Default store: SQLite inside the experiment directory (``sqlite:////abs/EXP/mlflow.db``, artifacts
 under ``EXP/mlartifacts``); browse it with ``mlflow ui --backend-store-uri sqlite:////abs/EXP/mlflow.db``.
@@ -13,6 +13,7 @@ it is probed before the sweep writes anything.
 """
 from __future__ import annotations
 
+import csv
 import json
 import logging
 import math
@@ -177,23 +178,7 @@ class Tracker:
             for i in range(0, len(params), _PARAM_BATCH):
                 client.log_batch(rid, params=params[i:i + _PARAM_BATCH])
             ts = int(time.time() * 1000)
-            metrics = []
-            for row in rundir.read_rows(run_dir / rundir.METRICS):
-                step = _finite(row.get("step"))
-                if step is None:
-                    continue
-                for k, cell in row.items():
-                    v = _finite(cell)
-                    if k != "step" and v is not None:
-                        metrics.append(Metric(_metric_key(k), v, ts, int(step)))
-            for row in rundir.read_rows(run_dir / rundir.EVAL):
-                step = _finite(row.get("step"))
-                if step is None:
-                    continue
-                for k in ("success_rate", "mean_return"):
-                    v = _finite(row.get(k))
-                    if v is not None:
-                        metrics.append(Metric(f"eval/{k}", v, ts, int(step)))
+            metrics = [Metric(k, v, ts, step) for k, v, step in metric_series(run_dir)]
             for i in range(0, len(metrics), _BATCH):
                 client.log_batch(rid, metrics=metrics[i:i + _BATCH])
             for f in (rundir.CONFIG, rundir.METRICS, rundir.EVAL):
@@ -218,6 +203,34 @@ class Tracker:
 
 def _metric_key(col: str) -> str:
     return re.sub(r"[^A-Za-z0-9_\-. /]", "_", col)
+
+
+EVAL_METRICS = ("success_rate", "mean_return")  # eval.csv's columns, logged as eval/<column>
+
+
+def _header(path: Path) -> list[str]:
+    """The columns a CSV's header names (a reader may add other names for renamed columns: those are not logged)."""
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        return [c.strip() for c in next(csv.reader(f), [])]
+
+
+def metric_series(run_dir: Path) -> list[tuple[str, float, int]]:
+    """(MLflow name, value, env step) of a run's metrics, one name per metric: metrics.csv's columns as its header
+    names them, except ``eval_*``, which repeat the last evaluation at every log row; the evaluations themselves
+    come from eval.csv, at the steps they ran, as ``eval/success_rate`` and ``eval/mean_return``. Empty and
+    non-finite cells are left out."""
+    out: list[tuple[str, float, int]] = []
+    cols = [c for c in _header(run_dir / rundir.METRICS) if c != "step" and not c.startswith("eval_")]
+    for source, names in ((rundir.METRICS, {c: _metric_key(c) for c in cols}),
+                          (rundir.EVAL, {c: f"eval/{c}" for c in EVAL_METRICS})):
+        for row in rundir.read_rows(run_dir / source):
+            step = _finite(row.get("step"))
+            if step is None:
+                continue
+            out += [(name, v, int(step)) for col, name in names.items() if (v := _finite(row.get(col))) is not None]
+    return out
 
 
 def _local_store_path(uri: str) -> Path | None:
