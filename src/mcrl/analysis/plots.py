@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from mcrl.analysis.stats import DEFAULT_N_BOOT, MIN_SEEDS_FOR_VERDICT, mean_ci_band
 from mcrl.errors import MCRLError
@@ -26,6 +27,13 @@ COLORS = [f"C{i}" for i in range(10)]
 def has_data(cols: Mapping[str, np.ndarray], name: str) -> bool:
     """Whether column ``name`` exists and holds at least one finite value."""
     return name in cols and bool(np.isfinite(cols[name]).any())
+
+
+def steps_in_thousands(ax: Axes) -> None:
+    """Label an env-steps x axis in thousands ('50k'), at most 6 ticks: full numbers run together on a panel
+    ("100000120000140000")."""
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: "0" if v == 0 else f"{v / 1000:g}k"))
 
 
 def plot_curves_with_band(
@@ -45,10 +53,11 @@ def plot_curves_with_band(
     """Draw, per configuration, the mean curve over seeds and its 95% bootstrap band.
 
     ``curves_by_config`` maps a label to curves (n_seeds, n_points) (a 1-D curve is one seed)
-    sampled at ``steps``; NaN marks points a seed lacks. The band is shaded only where at least
-    ``MIN_SEEDS_FOR_VERDICT`` seeds have the point (a bootstrap over two seeds is just their
-    range); where fewer do, the seeds' own curves are drawn thin beside the mean instead. One
-    seed is drawn as its curve alone, which is how :func:`plot_run` draws a single run.
+    sampled at ``steps`` (env steps, labelled in thousands); NaN marks points a seed lacks. The
+    band is shaded only where at least ``MIN_SEEDS_FOR_VERDICT`` seeds have the point (a bootstrap
+    over two seeds is just their range); where fewer do, the seeds' own curves are drawn thin
+    beside the mean instead. One seed is drawn as its curve alone, which is how :func:`plot_run`
+    draws a single run.
     """
     x = np.asarray(steps, dtype=float)
     for i, (label, curves) in enumerate(curves_by_config.items()):
@@ -69,6 +78,7 @@ def plot_curves_with_band(
                 ax.plot(x, np.where(banded, np.nan, curve), color=color, linestyle=linestyle, lw=0.6, alpha=0.5)
     if logy:
         ax.set_yscale("log")
+    steps_in_thousands(ax)
     ax.set_title(title, fontsize=10)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
@@ -154,4 +164,5 @@ def figure_to_png(fig: Figure, path: str | Path | None = None, dpi: int = 100) -
     return data
 
 
-__all__ = ["plot_run", "plot_curves_with_band", "panel_grid", "has_data", "figure_to_png", "COLORS"]
+__all__ = ["plot_run", "plot_curves_with_band", "panel_grid", "has_data", "figure_to_png", "steps_in_thousands",
+           "COLORS"]
