@@ -32,6 +32,7 @@ from mcrl.run.rundir import (CONFIG, EVAL, FINAL_EVAL, METRICS, PEER, RUNS, SWEE
                              read_json)
 
 PROVENANCE = "provenance.json"  # EXP/provenance.json, written by whoever ran the experiment
+ALPHA_ALIAS = "intrinsic_alpha"  # mc_alpha's name in configs written after its rename to intrinsic_* keys
 
 
 @dataclass
@@ -51,6 +52,7 @@ class ConfigGroup:
     @property
     def mc_alpha(self) -> float | None:
         v = self._setting("mc_alpha")
+        v = self._setting(ALPHA_ALIAS) if v is None else v  # a config written under the key's newer name
         return None if v is None else float(v)
 
     @property
@@ -127,8 +129,8 @@ def _sweep_runs(d: Path, prefix: str = "") -> tuple[dict[str, Any], list[Run]]:
     return sweep, runs
 
 
-def _extra_runs(path: Path) -> list[Run]:
-    """The runs of an extra path: an experiment directory, a run directory, a directory of run directories, or
+def read_runs(path: Path) -> list[Run]:
+    """The runs of a directory: an experiment directory, a run directory, a directory of run directories, or
     one whose ``runs/`` holds them (a reference arm laid out like an experiment, without sweep.json)."""
     if not path.is_dir():
         raise MCRLError(f"--with {path}: no such directory: give an experiment directory, a run directory "
@@ -159,7 +161,7 @@ def split_label(arg: str | Path) -> tuple[Path, str | None]:
             if not label:
                 raise MCRLError(f"--with {text}: the label after '=' is empty: give --with DIR=LABEL or just DIR")
             return Path(text[:i]), label
-    return Path(text), None  # not a directory either way: _extra_runs says so
+    return Path(text), None  # not a directory either way: read_runs says so
 
 
 def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path] = ()) -> Experiment:
@@ -178,7 +180,7 @@ def load_experiment(experiment_dir: str | Path, extra_runs: Sequence[str | Path]
     extra = [p for p, _ in labelled]
     seen = {r.dir.resolve() for r in runs}
     for p, label in labelled:
-        for r in _extra_runs(p):
+        for r in read_runs(p):
             if r.dir.resolve() not in seen:  # a run given twice (e.g. --with EXP itself) counts once
                 seen.add(r.dir.resolve())
                 r.label = label

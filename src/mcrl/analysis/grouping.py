@@ -21,7 +21,7 @@ NOT_CONFIGURATION = frozenset({"seed", "out_dir", "preset", "video_every", "keep
                                "checkpoint_every", "log_every"})
 
 
-def _settings(config: dict[str, Any]) -> dict[str, Any] | None:
+def run_settings(config: dict[str, Any]) -> dict[str, Any] | None:
     """The settings that define a run's configuration: its config.json completed with defaults
     (so a key left out equals its default), without :data:`NOT_CONFIGURATION`. None without config.json."""
     if not config:
@@ -50,7 +50,7 @@ def _fmt(v: Any) -> str:
     return "null" if v is None else str(v)
 
 
-def _same(a: Any, b: Any) -> bool:
+def same_value(a: Any, b: Any) -> bool:
     """Equal as JSON (a tuple from Config equals a list from sweep.json; 1 equals 1.0)."""
     return json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str) or (
         isinstance(a, (int, float)) and isinstance(b, (int, float)) and float(a) == float(b))
@@ -83,7 +83,7 @@ def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str
     settings: dict[tuple[str, str, str], dict[str, Any]] = {}
     unstarted: list[Run] = []
     for r in runs:
-        s = _settings(r.config)
+        s = run_settings(r.config)
         if s is None:
             unstarted.append(r)
             continue
@@ -99,7 +99,7 @@ def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str
                  and r.config_key is not None
                  and any(o.config_key == r.config_key and o.source == r.source for o in v)]
         if len(homes) > 1:
-            homes = [k for k in homes if all(_same(settings[k].get(o), v) for o, v in r.overrides.items()
+            homes = [k for k in homes if all(same_value(settings[k].get(o), v) for o, v in r.overrides.items()
                                              if o not in NOT_CONFIGURATION)]
         key = homes[0] if len(homes) == 1 else (_family(r), f"unstarted:{r.source}:{r.config_key or r.name}",
                                                 r.label or "")
@@ -114,7 +114,7 @@ def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str
         twin = next((o for k, v in buckets.items() if k in settings and k[0] == key[0] for o in v
                      if o.config and o.source == r.source and o.overrides.keys() == r.overrides.keys()), None)
         if twin is not None:
-            settings[key] = _settings({**twin.config, **{k: v for k, v in r.overrides.items()
+            settings[key] = run_settings({**twin.config, **{k: v for k, v in r.overrides.items()
                                                          if k not in NOT_CONFIGURATION}})
 
     labels: dict[tuple[str, str, str], str] = {}

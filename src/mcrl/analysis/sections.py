@@ -1,5 +1,6 @@
 """The sections of ``mcrl report`` that apply to any experiment: tables, figures and readings, as typed blocks
-(:mod:`mcrl.analysis.markdown`). The thesis' table and claims are :mod:`mcrl.analysis.claims`.
+(:mod:`mcrl.analysis.markdown`). The claims and their verdicts are :mod:`mcrl.analysis.verdicts`, the thesis'
+comparison :mod:`mcrl.analysis.comparison`; :mod:`mcrl.analysis.report` puts them in order.
 
 Every reading of a result (a difference between configurations) is drawn only when each configuration it compares
 has at least ``MIN_SEEDS_FOR_VERDICT`` finished seeds, and comes from an exact test
@@ -17,10 +18,8 @@ import numpy as np
 
 from mcrl.analysis.cells import (CONF, SEED, code, mean_cell, mean_ci, name, num, other_intrinsic, pvalue,
                                  sac_and_mc, sample_var, steps, too_few)
-from mcrl.analysis.claims import thesis_section
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
 from mcrl.analysis.experiment import ConfigGroup, Experiment
-from mcrl.analysis.intrinsic import intrinsic_section
 from mcrl.analysis.hypothesis import fisher_exact, holm, rank_sum_test
 from mcrl.analysis.markdown import Block, Bullets, Figure, Heading, Paragraph, Table
 from mcrl.analysis.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
@@ -60,21 +59,31 @@ def _comparisons(exp: Experiment) -> list[tuple[ConfigGroup, ConfigGroup]]:
 # ---------------------------------------------------------------------------------- sections
 
 
-def _overview(exp: Experiment) -> list[Block]:
+def summary(exp: Experiment) -> list[Block]:
+    """The report's title and what it is made of, in a few lines; how it was made comes last (:func:`provenance`)."""
     n_done = sum(r.status == "finished" for r in exp.runs)
     envs = sorted({str(r.config["env_id"]) for r in exp.runs if "env_id" in r.config})
     budgets = sorted({r.total_steps for r in exp.runs if r.total_steps is not None})
-    items = [
-        f"preset: `{exp.preset or '?'}`; environment: {', '.join(f'`{e}`' for e in envs) or '?'}",
-        f"training budget (total_steps): {', '.join(steps(b) for b in budgets) or '?'}",
+    return [Heading(1, f"mcrl report: {exp.dir.name}"), Bullets([
+        f"preset: `{exp.preset or '?'}`; environment: {', '.join(f'`{e}`' for e in envs) or '?'}; training budget "
+        f"(total_steps): {', '.join(steps(b) for b in budgets) or '?'}",
         f"runs finished: {n_done} of {len(exp.runs)}"
         + ("" if n_done == len(exp.runs) else " (see [Missing and unfinished runs](#missing-and-unfinished-runs))"),
         f"configurations: {', '.join(f'`{g.key}`' for g in exp.configs)}",
+        "provenance (commits, machines, commands) and method: [at the end](#provenance-and-method)",
+    ])]
+
+
+def provenance(exp: Experiment, claims_file: str | None) -> list[Block]:
+    """How the report was made: statistics used, reference arms, extra directories, claims registry, and each
+    experiment's provenance.json."""
+    items = [
         f"confidence intervals: 95%, percentile bootstrap over seeds (seed {SEED}), none from fewer than "
         f"{MIN_SEEDS_FOR_VERDICT} seeds; IQM and probability of "
         f"improvement: stratified bootstrap via {bootstrap_backend()}",
         f"readings and verdicts need at least {MIN_SEEDS_FOR_VERDICT} finished seeds in every configuration "
         "compared (MIN_SEEDS_FOR_VERDICT); with fewer the report says 'too few seeds for a verdict'",
+        f"claims registry: {code(claims_file) if claims_file else 'none (each baseline is its own family here)'}",
     ]
     peers = [g for g in exp.configs if g.peer]
     if peers:
@@ -82,13 +91,13 @@ def _overview(exp: Experiment) -> list[Block]:
                      + ", ".join(f"`{g.key}` ({g.peer})" for g in peers))
     if exp.extra_sources:
         items.append("runs added from: " + ", ".join(code(str(p)) for p in exp.extra_sources))
-    out: list[Block] = [Heading(1, f"mcrl report: {exp.dir.name}")]
+    out: list[Block] = [Heading(2, "Provenance and method"), Bullets(items)]
     if exp.provenance:
         out += [Paragraph("**Provenance** (from provenance.json):"), Bullets(_provenance(exp.provenance))]
     for path, prov in exp.extra_provenance.items():
         out += [Paragraph(f"**Provenance of {code(path.name)}** (from {code(str(path / 'provenance.json'))}):"),
                 Bullets(_provenance(prov))]
-    return out + [Bullets(items)]
+    return out
 
 
 def _provenance(prov: dict[str, object]) -> list[str]:
@@ -359,9 +368,8 @@ def _critic_section(exp: Experiment) -> list[Block]:
     ]
 
 
-def build_report(exp: Experiment) -> list[Block]:
-    """Every section of the report, in order."""
-    return (_overview(exp) + _learning_curves(exp) + _final_table(exp) + _per_seed_table(exp)
-            + _robust_stats(exp) + _detectable(exp) + thesis_section(exp) + intrinsic_section(exp)
-            + _critic_section(exp) + _mc_section(exp)
-            + _missing_section(exp))
+def results(exp: Experiment) -> list[Block]:
+    """The sections after the verdicts and the thesis' comparison: final numbers, curves, effect sizes, what the
+    seeds can detect, critics, the MC reward, every seed, and what is missing."""
+    return (_final_table(exp) + _learning_curves(exp) + _robust_stats(exp) + _detectable(exp) + _critic_section(exp)
+            + _mc_section(exp) + _per_seed_table(exp) + _missing_section(exp))
