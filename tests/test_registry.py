@@ -89,13 +89,20 @@ def test_two_reports_print_the_same_family_adjusted_p(repo: Path) -> None:
     assert "- 'against SAC': 4 claims, Holm over the 3 with enough seeds" in a and "against SAC': 4 claims" in b
 
 
+def _sacmc(docs: Path, exp: str, *extra: str, registry: bool = True):
+    """The decided claim 'SAC-MC 0.2 better than SAC' of a report (no effect sizes: no bootstrap)."""
+    claims = report_claims(load_experiment(docs / exp, [docs / e for e in extra]),
+                           load_registry(docs / "claims.yaml") if registry else None, docs.parent)
+    return next(r for r in claims.results if r.kind == "better" and r.x.tolist() == SAC_MC)
+
+
 def test_the_family_grows_where_the_registry_says_and_nowhere_else(repo: Path) -> None:
-    before = _claim(_verdicts(repo, "main"), "SAC-MC 0.2")
+    before = _sacmc(repo, "main")
     _sweep(repo / "alpha", {"a0.4": (0.4, {}, [s + 0.02 for s in SAC])})  # the declared alpha arm gets its runs
-    after = _claim(_verdicts(repo, "main"), "SAC-MC 0.2")
-    p_before, p_after = (float(r[6].split("(")[1].rstrip(")")) for r in (before, after))
-    assert p_after > p_before  # Holm over 4 claims now, in every report
-    assert "'against SAC': 4 claims, Holm over the 4 with enough seeds" in _verdicts(repo, "arms", "main")
+    after, elsewhere = _sacmc(repo, "main"), _sacmc(repo, "arms", "main")
+    assert (before.family.size, before.family.tested, after.family.tested) == (4, 3, 4)
+    assert after.verdict.p_adj > before.verdict.p_adj  # Holm over 4 claims now, in every report
+    assert elsewhere.verdict.p_adj == after.verdict.p_adj and elsewhere.family == after.family
 
 
 def test_a_report_finds_the_registry_above_its_experiment(repo: Path, tmp_path: Path,
@@ -111,13 +118,11 @@ def test_a_report_finds_the_registry_above_its_experiment(repo: Path, tmp_path: 
         < md.index("## Final performance per seed") < md.index("## Provenance and method")
     row = _row(_section(md, "Other intrinsic rewards against SAC and SAC-MC"), "`SAC+RND 0.2` | `SAC`")
     assert row[4] == _claim(md, "RND")[6]  # the section prints its family's p
-    # without the registry the same report forms the family from its own claims: another adjusted p
-    alone = write_report(repo / "arms", tmp_path / "rep2", extra_runs=[repo / "main"], claims=False).read_text()
-    assert "claims registry: none" in alone
-    assert "SAC-MC 0.2 (`SAC-MC 0.2`)" not in alone  # arms named as the report names them
     p = claim_test(SAC_MC, SAC, 0.23).p
     assert _claim(md, "SAC-MC 0.2")[6] == f"{p:.4f} ({3 * p:.4f})"  # Holm over the declared family's 3
-    assert _claim(alone, "`SAC-MC 0.2`")[6] == f"{p:.4f} ({2 * p:.4f})"  # over this report's 2 (SAC-MC, RND)
+    # without the registry the report forms the family from its own claims (SAC-MC's and RND's): another p
+    alone = _sacmc(repo, "arms", "main", registry=False)
+    assert alone.verdict.p_adj == pytest.approx(2 * p) and alone.family.declared_in is None
 
 
 def test_pooled_baselines_wait_for_their_equivalence(repo: Path) -> None:
