@@ -224,3 +224,47 @@ def test_sac_bfloat16_learns_fetchreach(tmp_path):
     evals = read_rows(run / "eval.csv")
     assert evals[-1]["step"] == 9000 and evals[-1]["episodes"] == 20
     assert max(e["success_rate"] for e in evals) >= 0.9, evals
+
+
+def _lowered_dots(agent: Agent, vmapped: bool = False) -> dict[str, list[str]]:
+    """The dot_general lines of the lowered update (forward and backward passes, every network it trains) and of
+    both policies, from the agent's shapes alone (nothing is run)."""
+    state = jax.eval_shape(lambda: agent.init(0))
+    f32 = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)  # noqa: E731
+    batch = Batch(obs=f32(BATCH, 31), action=f32(BATCH, 4), reward=f32(BATCH), next_obs=f32(BATCH, 31),
+                  terminated=f32(BATCH))
+    if vmapped:  # as a group trains: the step vmapped over 2 runs, hyperparameters as data
+        from mcrl.algo.sac import Hyper
+
+        two = lambda x: jax.ShapeDtypeStruct((2, *x.shape), x.dtype)  # noqa: E731
+        update = jax.jit(jax.vmap(agent.update)).lower(*jax.tree.map(two, (state, batch, Hyper(*[f32()] * 5))))
+    else:
+        update = jax.jit(agent.update).lower(state, batch)
+    key = jax.ShapeDtypeStruct((2,), jnp.uint32)
+    lowered = {"update": update, "act": jax.jit(agent.act).lower(state.pi.params, f32(1, 31), key),
+               "act_deterministic": jax.jit(agent.act_deterministic).lower(state.pi.params, f32(1, 31))}
+    return {k: [line for line in v.as_text().splitlines() if "dot_general" in line] for k, v in lowered.items()}
+
+
+@pytest.mark.parametrize("intrinsic", ["mc", "rnd", "icm", "disagreement"])
+def test_float32_asks_for_the_highest_precision_on_every_dot(intrinsic):
+    """On NVIDIA GPUs JAX's default matmul precision is TF32 (a 10-bit mantissa): float32 must ask for HIGHEST on
+    every dot_general of the jitted step (actor, critics, the intrinsic reward's networks, forward and backward)
+    and of the policy, so that a GPU run is float32 as the CPU's is (on the CPU it changes no number: a FetchPush
+    SAC-MC run gave the same metrics.csv and checkpoint bit for bit before and after)."""
+    cfg = resolve_config("fetchpush-sacmc-0.2", {"intrinsic": intrinsic})
+    for vmapped in (False, True) if intrinsic == "mc" else (False,):
+        for name, dots in _lowered_dots(Agent(31, 4, 25, cfg), vmapped).items():
+            assert dots, name
+            loose = [d for d in dots if "precision = [HIGHEST, HIGHEST]" not in d]
+            assert not loose, (name, vmapped, loose[:2])
+
+
+def test_bfloat16_stays_bfloat16_and_asks_for_no_precision():
+    """bfloat16 is unchanged by the float32 fix: its forward dots multiply bfloat16 operands (36 of them, counted
+    in the test above) at the default precision, and none asks for HIGHEST."""
+    dots = _lowered_dots(_agent("bfloat16"))
+    bf16 = re.compile(r"\(tensor<[0-9x]*xbf16>, tensor<[0-9x]*xbf16>\) -> tensor<[0-9x]*xf32>")
+    assert sum(bool(bf16.search(d)) for d in dots["update"]) == 36
+    assert all(bf16.search(d) for d in dots["act"] + dots["act_deterministic"])
+    assert not any("HIGHEST" in d for ds in dots.values() for d in ds)

@@ -5,10 +5,12 @@ from U(-1/sqrt(fan_in), 1/sqrt(fan_in)), as in stable-baselines3 and the thesis'
 default (LeCun-normal weights, variance 1/fan_in, zero biases). The choice matters: with Flax's default,
 mcrl's critics drifted upward on FetchPush where stable-baselines3's settled (docs/parity.md).
 
-Every layer's matmul runs at `matmul_precision`: "float32" (the default) is Flax's plain Dense; "bfloat16"
-rounds the layer's input and kernel to bfloat16 and multiplies them with float32 accumulation and a float32
-result. Parameters stay float32 (same names, shapes and initialisation), and the bias add, activations,
-log-std clamp and everything outside the matmuls stay float32.
+Every layer's matmul runs at `matmul_precision`: "float32" (the default) is a true float32 matmul, Flax's Dense
+with `precision=HIGHEST` on its dot_general (and so on the backward pass's dots): JAX's default precision is
+TF32 on NVIDIA GPUs (a 10-bit mantissa), and HIGHEST keeps a GPU run float32 like the CPU's (where it changes no
+bit). "bfloat16" rounds the layer's input and kernel to bfloat16 and multiplies them with float32 accumulation
+and a float32 result. Parameters stay float32 (same names, shapes and initialisation), and the bias add,
+activations, log-std clamp and everything outside the matmuls stay float32.
 """
 from __future__ import annotations
 
@@ -52,7 +54,9 @@ def dense_kwargs(init: str, fan_in: int, matmul_precision: str = "float32") -> d
     kwargs = dense_inits(init, fan_in)
     if matmul_precision == "bfloat16":
         kwargs["dot_general"] = bf16_dot_general
-    elif matmul_precision != "float32":
+    elif matmul_precision == "float32":
+        kwargs["precision"] = jax.lax.Precision.HIGHEST  # not TF32 on a GPU (see the module's docstring)
+    else:
         raise ValueError(f"unknown matmul_precision {matmul_precision!r}: choose one of {PRECISIONS}")
     return kwargs
 
