@@ -37,9 +37,9 @@ def final_eval_episodes(cfg) -> int:
 def check_mirrorable(cfg, env) -> bool:
     """Raise UnsupportedConfig for settings SB3 cannot reproduce; return whether HER is used."""
     problems = []
-    if cfg.mc_alpha > 0 or cfg.use_mc_models:
-        problems.append(f"mc_alpha={cfg.mc_alpha}, mc_models={cfg.mc_models}: stable-baselines3 has no "
-                        "morphological-computation reward or models (use a SAC preset, e.g. fetchpush-sac)")
+    if cfg.intrinsic_alpha > 0 or cfg.use_intrinsic_models:
+        problems.append(f"intrinsic_alpha={cfg.intrinsic_alpha}, intrinsic_models={cfg.intrinsic_models}: "
+                        "stable-baselines3 has no intrinsic reward or models (use a SAC preset, e.g. fetchpush-sac)")
     if cfg.init != "torch":
         problems.append(f"init={cfg.init!r}: stable-baselines3 initialises layers as torch's nn.Linear does "
                         "(init=torch) and cannot use Flax's scheme")

@@ -29,7 +29,7 @@ def long_run(preset: str, steps: int, hidden: int) -> dict:
     log_every = max(steps // 100, 50)
     sizes = [hidden] * 3
     cfg = resolve_config(preset, {"total_steps": steps, "log_every": log_every, "eval_every": steps // 10,
-                                  "eval_episodes": 5, "hidden_sizes": sizes, "mc_hidden_sizes": [hidden] * 5,
+                                  "eval_episodes": 5, "hidden_sizes": sizes, "intrinsic_hidden_sizes": [hidden] * 5,
                                   "checkpoint_every": steps // 5, "keep_checkpoints": 1})
     with tempfile.TemporaryDirectory() as d:
         run = train(cfg, Path(d) / "long", progress=True)

@@ -54,9 +54,9 @@ def update_timer(preset: str, overrides: dict | None = None, full_history: bool 
     batches = [buffer.sample(cfg.batch_size, rng) for _ in range(8)]
     state = agent.init(0)
     if full_history and state.norm is not None:
-        n = cfg.mc_history_values or cfg.total_steps * cfg.mc_values_per_step
+        n = cfg.intrinsic_history_values or cfg.total_steps * cfg.intrinsic_values_per_step
         values = rng.lognormal(2.0, 1.5, n).astype(np.float32)
-        if cfg.mc_history_values is None:
+        if cfg.intrinsic_history_values is None:
             state = state._replace(norm=normaliser.from_values(values, None))
         else:
             state = state._replace(norm=normaliser.push(state.norm, values))

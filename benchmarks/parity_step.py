@@ -597,13 +597,13 @@ def main(argv=None) -> int:
         args.preset, args.seed = cfg.preset or cfg.env_id, cfg.seed
     else:
         cfg = resolve_config(args.preset, {**parse_set(args.set), "seed": args.seed})
-    if cfg.use_mc_models:
-        print(f"error: {args.preset} trains MC models; stable-baselines3 has none (use a SAC preset)",
+    if cfg.use_intrinsic_models:
+        print(f"error: {args.preset} trains intrinsic models; stable-baselines3 has none (use a SAC preset)",
               file=sys.stderr)
         return 2
     env = make_env(cfg)
     spec = inspect(env, cfg)
-    agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
+    agent = Agent(spec.obs_dim, spec.act_dim, spec.intrinsic_dim, cfg)
     state0 = agent.init(args.seed)
     layout = _layout(len(cfg.hidden_sizes))
     if args.checkpoint is not None:

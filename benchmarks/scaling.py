@@ -27,7 +27,7 @@ def main() -> int:
     rows = []
     settings = [(int(b), 256) for b in a.batches.split(",")] + [(256, int(w)) for w in a.widths.split(",") if w != "256"]
     for batch, width in settings:
-        over = {**fixed, "batch_size": batch, "hidden_sizes": [width] * 3, "mc_hidden_sizes": [width] * 5}
+        over = {**fixed, "batch_size": batch, "hidden_sizes": [width] * 3, "intrinsic_hidden_sizes": [width] * 5}
         m = measure_update(a.preset, repeats=3, calls=max(10, 12_000 // batch), overrides=over)
         rows.append({"batch": batch, "width": width, **m,
                      "gflops_per_s": m["grad_step_gflop"] / (m["ms_per_grad_step"] / 1e3)})

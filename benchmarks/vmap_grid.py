@@ -81,9 +81,9 @@ def _wait(procs) -> None:
 
 
 def grid_configs(preset: str, n: int, steps: int, precision: str):
-    alpha = resolve_config(preset).mc_alpha
+    alpha = resolve_config(preset).intrinsic_alpha
     return [resolve_config(preset, {**_overrides(steps, precision), "seed": i // 2,
-                                    "mc_alpha": alpha if i % 2 else 0.0}) for i in range(n)]
+                                    "intrinsic_alpha": alpha if i % 2 else 0.0}) for i in range(n)]
 
 
 def measure(preset: str, runs: list[int], steps: int, precision: str, tmp: Path, layout: str = "split") -> dict:
@@ -115,7 +115,7 @@ from mcrl.algo.sac import Agent, Batch, Hyper
 from mcrl.config import resolve_config
 from mcrl.run.policy import agent_for
 spec = json.loads(sys.argv[1])
-cfg = resolve_config(spec["preset"], {"mc_models": True})
+cfg = resolve_config(spec["preset"], {"intrinsic_models": True})
 agent, es = agent_for(cfg)
 def batch(i):
     k = jax.random.PRNGKey(i)

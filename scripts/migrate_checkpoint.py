@@ -38,7 +38,7 @@ import numpy as np
 # 83e6d8d's and 0.1's train-state keys -> today's; longest first, so `.critic_target` is not read as `.critic`
 RENAMED = ((".critic_target", ".q_target"), (".critic_opt", ".q.opt"), (".critic", ".q.params"),
            (".actor_opt", ".pi.opt"), (".actor", ".pi.params"), (".ent_opt", ".ent.opt"),
-           (".log_ent_coef", ".ent.params"), (".mc_opt", ".mc_models.opt"), (".mc", ".mc_models.params"))
+           (".log_ent_coef", ".ent.params"), (".mc_opt", ".intrinsic.opt"), (".mc", ".intrinsic.params"))
 NORM_01 = ".norm."  # mcrl 0.1 kept the normaliser inside state.npz
 _L3 = 1 << 23  # finest histogram level of mcrl.algo.normaliser (top 24 bits of the float32 pattern)
 
@@ -83,10 +83,11 @@ def migrate_config(d: dict) -> dict:
 
 def window_capacity(cfg: dict) -> int:
     """KL values the normaliser's window holds under a (migrated) config; 0 = the whole run, no ring."""
-    if cfg.get("mc_history") is None:
+    history = cfg.get("intrinsic_history", cfg.get("mc_history"))  # either name (mcrl.config.STORED_AS)
+    if history is None:
         return 0
     per_step = 1 if cfg.get("mc_reduction") == "batch" else int(cfg["batch_size"])
-    return int(cfg["mc_history"]) * per_step
+    return int(history) * per_step
 
 
 def normaliser_from_01(arrays: dict[str, np.ndarray], capacity: int) -> dict[str, np.ndarray]:

@@ -11,7 +11,7 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 import pytest  # noqa: E402
 
 # Small networks for tests that check plumbing rather than learning; the learning test uses thesis sizes.
-SMALL = {"hidden_sizes": [64, 64], "mc_hidden_sizes": [64, 64], "buffer_size": 20_000, "batch_size": 64,
+SMALL = {"hidden_sizes": [64, 64], "intrinsic_hidden_sizes": [64, 64], "buffer_size": 20_000, "batch_size": 64,
          "eval_episodes": 2, "learning_starts": 100}
 
 

@@ -31,9 +31,11 @@ def _run(args, tmp_path, capsys):
     (["train", "--env", "CartPole-v1", "--set", "her=false"], "Box action space"),
     (["train", "--set", "no_such_key=1"], "unknown config key"),
     (["train", "--set", "batch_size=abc"], "expected int"),
-    (["train", "--set", "mc_alpha=0.2", "--set", "mc_models=false"], "needs the MC models"),
+    (["train", "--set", "mc_alpha=0.2", "--set", "mc_models=false"], "needs the intrinsic reward's models"),
+    (["train", "--set", "intrinsic_alpha=0.2", "--set", "mc_alpha=0.4"], "disagree"),
+    (["train", "--set", "intrinsic=nope"], "choose one of mc, rnd, icm, disagreement"),
     (["train", "--set", "init=xavier"], "init="),
-    (["train", "--set", "mc_history=0"], "mc_history=0"),
+    (["train", "--set", "mc_history=0"], "intrinsic_history=0"),
 ])
 def test_bad_training_input(args, needle, tmp_path, capsys):
     rc, err, new = _run(args + ["--out-dir", str(tmp_path / "runs")], tmp_path, capsys)
@@ -103,7 +105,7 @@ def test_measure_unreadable_file(tmp_path, capsys):
 def test_console_script_exit_code():
     res = subprocess.run([sys.executable, "-m", "mcrl.cli", "train", "--set", "mc_alpha=2"], capture_output=True,
                          text=True)
-    assert res.returncode == 2 and res.stderr.strip().startswith("mcrl: error: mc_alpha=2.0")
+    assert res.returncode == 2 and res.stderr.strip().startswith("mcrl: error: intrinsic_alpha=2.0")
 
 
 def test_training_into_an_existing_run_directory_is_refused(finished_run, capsys):

@@ -54,7 +54,7 @@ def test_thesis_presets_evaluate_100_episodes_at_the_end():
 
 def test_default_normaliser_history_holds_every_value_of_the_run(small):
     cfg = resolve_config("fetchreach-sacmc", small)
-    assert cfg.mc_history is None
+    assert cfg.intrinsic_history is None
     env, spec, agent, buffer = _build(cfg)
     env.close()
     state = agent.init(0)
@@ -72,7 +72,7 @@ def test_default_normaliser_history_holds_every_value_of_the_run(small):
 @pytest.mark.parametrize("reduction,per_step", [("transition", 64), ("batch", 1)])
 def test_a_window_is_counted_in_gradient_steps(small, reduction, per_step):
     cfg = resolve_config("fetchreach-sacmc", {**small, "mc_history": 5, "mc_reduction": reduction})
-    assert cfg.mc_history_values == 5 * per_step
+    assert cfg.intrinsic_history_values == 5 * per_step
     env, spec, agent, _ = _build(cfg)
     env.close()
     assert agent.init(0).norm.ring.shape == (5 * per_step,)
@@ -85,7 +85,7 @@ def test_antmaze_presets_use_the_thesis_ant():
         env = make_env(cfg)
         spec = inspect(env, cfg)
         env.close()
-        assert spec.observation_dim == 27 and spec.mc_dim == 27  # no contact forces
+        assert spec.observation_dim == 27 and spec.intrinsic_dim == 27  # no contact forces
         assert spec.act_dim == 8
 
 

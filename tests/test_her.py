@@ -67,12 +67,12 @@ def test_relabelled_transitions_carry_the_mc_reward():
     cfg = resolve_config("fetchreach-sacmc", {"mc_state": "full", "hidden_sizes": [32], "mc_hidden_sizes": [32],
                                               "mc_history": 4})
     env, spec, buf = _filled_buffer(cfg)
-    agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
+    agent = Agent(spec.obs_dim, spec.act_dim, spec.intrinsic_dim, cfg)
     state = agent.init(0)
     b = buf.sample(256, np.random.default_rng(3))
     batch = Batch(*(jnp.asarray(x) for x in b))
-    r_mc, kl, norm, bounds, *_ = jax.jit(agent.mc_reward)(state, batch)
-    out = agent.mc_net.forward(state.mc_models.params, batch.obs, batch.action)  # mc_dim == obs_dim here
+    r_mc, kl, norm, bounds, *_ = jax.jit(agent.intrinsic_reward)(state, batch)
+    out = agent.intrinsic_net.models.forward(state.intrinsic.params, batch.obs, batch.action)  # mc_dim == obs_dim here
     direct_kl = np.asarray(transition_kl(out))
     np.testing.assert_allclose(np.asarray(kl), direct_kl, rtol=1e-5)
     lo, hi = normaliser.bounds(normaliser.push(state.norm, jnp.asarray(direct_kl)), 0.0, 94.0)
@@ -82,7 +82,7 @@ def test_relabelled_transitions_carry_the_mc_reward():
     assert np.ptp(np.asarray(r_mc)[rel]) > 0  # a real per-transition signal, not a constant
     # the goal matters: un-relabelled copies of the same transitions give different KL
     orig = batch._replace(obs=batch.obs.at[:, -3:].set(batch.obs[0, -3:] + 0.5))
-    kl_orig = np.asarray(jax.jit(agent.mc_reward)(state, orig)[1])
+    kl_orig = np.asarray(jax.jit(agent.intrinsic_reward)(state, orig)[1])
     assert not np.allclose(kl_orig[rel], direct_kl[rel])
 
 

@@ -18,8 +18,8 @@ def _layers(params, prefix=""):
 
 def _all_layers(init: str):
     cfg = resolve_config("fetchpush-sacmc-0.2", {"init": init})
-    state = Agent(obs_dim=31, act_dim=4, mc_dim=25, cfg=cfg).init(3)
-    nets = {"actor": state.pi.params, "critic": state.q.params, "mc": state.mc_models.params}
+    state = Agent(obs_dim=31, act_dim=4, intrinsic_dim=25, cfg=cfg).init(3)
+    nets = {"actor": state.pi.params, "critic": state.q.params, "mc": state.intrinsic.params}
     layers = [(f"{n}{name}", k, b) for n, p in nets.items() for name, k, b in _layers(p)]
     # actor 3 + 2 heads, critics 2 x (3 + 1) (stacked), MC models 2 x (5 + 2 heads)
     assert len(layers) == 5 + 4 + 14
@@ -55,6 +55,6 @@ def test_default_is_torch_for_every_preset():
 
 def test_the_two_critics_start_different():
     cfg = resolve_config("fetchpush-sac")
-    critic = Agent(obs_dim=31, act_dim=4, mc_dim=25, cfg=cfg).init(0).q.params
+    critic = Agent(obs_dim=31, act_dim=4, intrinsic_dim=25, cfg=cfg).init(0).q.params
     k = jax.tree.leaves(critic)[0]
     assert not np.allclose(k[0], k[1])

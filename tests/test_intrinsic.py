@@ -1,21 +1,27 @@
-"""RND, ICM and Disagreement beside MC (`intrinsic`): each measures novelty on a toy system, leaves SAC untouched
-at mc_alpha = 0, and its models' state goes into checkpoints."""
+"""Every intrinsic reward behind one interface (`intrinsic`): RND, ICM and Disagreement each measure novelty on a toy
+system; every reward, MC included, leaves SAC untouched at intrinsic_alpha = 0 and puts its models' state into
+checkpoints; a fifth reward is its own class and one registry line."""
+from dataclasses import dataclass
+from typing import ClassVar
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+from mcrl.algo import intrinsic
 from mcrl.algo.disagreement import Disagreement
 from mcrl.algo.icm import ICM
-from mcrl.algo.intrinsic import moments_init, moments_update
+from mcrl.algo.moments import moments_init, moments_update
 from mcrl.algo.rnd import RND
 from mcrl.algo.sac import Agent
 from mcrl.config import resolve_config
 from mcrl.replay import Batch
 
-KINDS = ("rnd", "icm", "disagreement")
+KINDS = ("rnd", "icm", "disagreement")  # the novelty rewards
 MODELS = {"rnd": RND, "icm": ICM, "disagreement": Disagreement}
+ALL = ("mc", *KINDS)
 D, A_DIM = 6, 3
 
 
@@ -104,30 +110,42 @@ def _same(a, b):
     return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
 
 
-@pytest.mark.parametrize("kind", KINDS)
+def test_every_registered_reward_implements_the_interface():
+    assert set(ALL) <= set(intrinsic.names())
+    for name in intrinsic.names():
+        net = Agent(10, 4, 6, resolve_config("fetchreach-sacmc", {"intrinsic": name})).intrinsic_net
+        assert isinstance(net, intrinsic.IntrinsicReward), name
+        assert net.metrics and net.title and net.raw_label
+
+
+@pytest.mark.parametrize("kind", ALL)
 @pytest.mark.parametrize("hyper", [False, True], ids=["constants", "hyper"])
 def test_alpha_zero_update_is_sacs(kind, hyper, small):
-    """With mc_alpha = 0 and the models trained alongside, 20 gradient steps leave actor, critics, targets,
+    """With intrinsic_alpha = 0 and the models trained alongside, 20 gradient steps leave actor, critics, targets,
     entropy coefficient and key exactly as SAC's; a weight of 0.2 changes the critics (the test can fail)."""
-    base = {k: v for k, v in small.items() if k in ("hidden_sizes", "mc_hidden_sizes", "batch_size")}
+    base = {k: v for k, v in small.items() if k in ("hidden_sizes", "intrinsic_hidden_sizes", "batch_size")}
     sac_cfg = resolve_config("fetchreach-sac", base)
     batches = _batches(Agent(10, 4, 6, sac_cfg), 20)
     sac = _train(sac_cfg, batches, hyper)
-    zero = _train(resolve_config("fetchreach-sac", {**base, "intrinsic": kind, "mc_models": True}), batches, hyper)
-    mixed = _train(resolve_config("fetchreach-sac", {**base, "intrinsic": kind, "mc_alpha": 0.2}), batches, hyper)
-    assert sac.intrinsic is None and zero.intrinsic is not None and zero.mc_models is None
-    fresh = Agent(10, 4, 6, resolve_config("fetchreach-sac", {**base, "intrinsic": kind, "mc_models": True})).init(0)
+    zero = _train(resolve_config("fetchreach-sac", {**base, "intrinsic": kind, "intrinsic_models": True}), batches,
+                  hyper)
+    mixed = _train(resolve_config("fetchreach-sac", {**base, "intrinsic": kind, "intrinsic_alpha": 0.2}), batches,
+                   hyper)
+    assert sac.intrinsic is None and zero.intrinsic is not None
+    fresh = Agent(10, 4, 6, resolve_config("fetchreach-sac", {**base, "intrinsic": kind,
+                                                              "intrinsic_models": True})).init(0)
     assert not _same(zero.intrinsic.params, fresh.intrinsic.params)  # the models really trained alongside
     for part in ("pi", "q", "q_target", "ent", "key", "grad_steps"):
         assert _same(getattr(sac, part), getattr(zero, part)), part
     assert not _same(sac.q.params, mixed.q.params)
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", ALL)
 def test_intrinsic_reward_is_in_range_and_mixed(kind, small):
-    """The scaled reward lies in [mc_reward_low, mc_reward_high]; the mixed reward is (1 - a) r + a r_int."""
-    cfg = resolve_config("fetchreach-sac", {"hidden_sizes": [64, 64], "mc_hidden_sizes": [64, 64], "batch_size": 64,
-                                            "intrinsic": kind, "mc_alpha": 0.4})
+    """The scaled reward lies in [intrinsic_reward_low, intrinsic_reward_high]; the mixed reward is
+    (1 - a) r + a r_int; the reward's raw mean is its metric."""
+    cfg = resolve_config("fetchreach-sac", {"hidden_sizes": [64, 64], "intrinsic_hidden_sizes": [64, 64],
+                                            "batch_size": 64, "intrinsic": kind, "intrinsic_alpha": 0.4})
     agent = Agent(10, 4, 6, cfg)
     state = agent.init(0)
     batch = _batches(agent, 1)[0]
@@ -137,21 +155,24 @@ def test_intrinsic_reward_is_in_range_and_mixed(kind, small):
     _, metrics = jax.jit(agent.update)(state, batch)
     mixed = 0.6 * batch.reward.mean() + 0.4 * r.mean()
     assert float(metrics["mean_total_reward"]) == pytest.approx(mixed, rel=1e-5)
-    assert float(metrics["mean_raw_intrinsic"]) == pytest.approx(float(np.mean(step.raw)), rel=1e-6)
+    raw_metric = "mean_raw_kl" if kind == "mc" else "mean_raw_intrinsic"
+    assert float(metrics[raw_metric]) == pytest.approx(float(np.mean(step.raw)), rel=1e-6)
+    assert set(agent.intrinsic_net.metrics) | {"mean_intrinsic_reward"} <= set(metrics)
 
 
 def test_config_of_intrinsic():
     cfg = resolve_config("fetchpush-sacmc-0.2", {"intrinsic": "rnd"})
-    assert cfg.intrinsic_models == "rnd" and cfg.mc_alpha == 0.2
-    assert resolve_config("fetchpush-sac", {"intrinsic": "icm"}).intrinsic_models is None  # alpha 0: plain SAC
+    assert cfg.intrinsic == "rnd" and cfg.use_intrinsic_models and cfg.intrinsic_alpha == 0.2
+    assert not resolve_config("fetchpush-sac", {"intrinsic": "icm"}).use_intrinsic_models  # alpha 0: plain SAC
     assert resolve_config("fetchpush-sacmc-0.2").intrinsic == "mc"  # the default, and old config.json files'
 
 
 # ----------------------------------------------------------------------------- checkpoints, groups, learning
 def _tiny(kind: str, **extra):
-    return resolve_config("fetchreach-sac", {"hidden_sizes": [64, 64], "mc_hidden_sizes": [64, 64], "batch_size": 64,
-                                             "buffer_size": 5000, "mc_history": 2000, "learning_starts": 100,
-                                             "eval_episodes": 2, "intrinsic": kind, "mc_alpha": 0.2, **extra})
+    return resolve_config("fetchreach-sac", {"hidden_sizes": [64, 64], "intrinsic_hidden_sizes": [64, 64],
+                                             "batch_size": 64, "buffer_size": 5000, "intrinsic_history": 2000,
+                                             "learning_starts": 100, "eval_episodes": 2, "intrinsic": kind,
+                                             "intrinsic_alpha": 0.2, **extra})
 
 
 @pytest.mark.slow
@@ -199,12 +220,88 @@ def test_the_reward_trains_fetchreach(kind, tmp_path):
     from mcrl.run.rundir import read_rows
     from mcrl.run.trainer import train
 
-    cfg = resolve_config("fetchreach-sac", {"intrinsic": kind, "mc_alpha": 0.2, "hidden_sizes": [128, 128, 128],
-                                            "mc_hidden_sizes": [128, 128], "ent_coef_init": 0.1,
+    cfg = resolve_config("fetchreach-sac", {"intrinsic": kind, "intrinsic_alpha": 0.2,
+                                            "hidden_sizes": [128, 128, 128], "intrinsic_hidden_sizes": [128, 128],
+                                            "ent_coef_init": 0.1,
                                             "total_steps": 7000, "eval_every": 500, "eval_episodes": 10,
                                             "checkpoint_every": 100_000})
     run = train(cfg, tmp_path / kind, progress=False)
     evals = read_rows(run / "eval.csv")
     assert max(e["success_rate"] for e in evals) >= 0.9, evals
     last = read_rows(run / "metrics.csv")[-1]
-    assert last["mean_raw_intrinsic"] > 0 and -1.0 <= last["mean_mc_reward"] <= 0.0
+    assert last["mean_raw_intrinsic"] > 0 and -1.0 <= last["mean_intrinsic_reward"] <= 0.0
+
+
+# ----------------------------------------------------------------------------- a fifth reward, the timeline
+@dataclass(frozen=True)
+class Toy(intrinsic.Sizes):
+    """A fifth reward, all of it: the squared error of a linear model predicting s' from (s, a)."""
+
+    title: ClassVar[str] = "Toy"
+    raw_label: ClassVar[str] = "raw toy error"
+
+    def init(self, key):
+        return {"w": 0.01 * jax.random.normal(key, (self.state_dim + self.action_dim, self.state_dim))}, {}
+
+    def reward(self, params, untrained, s, a, s_next):
+        return jnp.square(jnp.concatenate([s, a], -1) @ params["w"] - s_next).mean(-1)
+
+    def step(self, params, untrained, s, a, s_next, key):
+        def loss(p):
+            err = self.reward(p, untrained, s, a, s_next)
+            return err.mean(), err
+
+        (value, err), grads = jax.value_and_grad(loss, has_aux=True)(params)
+        return intrinsic.Raw(err, grads, untrained, self.generic_metrics(value, err))
+
+
+@pytest.fixture
+def toy_registered(monkeypatch):
+    monkeypatch.setattr(intrinsic, "_REGISTRY", dict(intrinsic._REGISTRY))  # undone after the test
+    intrinsic.register("toy", Toy)  # the one registry line a new reward needs
+    return "toy"
+
+
+def test_a_fifth_reward_is_its_class_and_one_registry_line(toy_registered, tmp_path, small, capsys):
+    """Registered, the toy reward is a valid `intrinsic` and trains through `mcrl train` like the others: its raw
+    reward and normalised reward in metrics.csv, its models in the checkpoint's one intrinsic slot."""
+    from mcrl.cli import main
+    from mcrl.run import checkpoint
+    from mcrl.run.rundir import read_rows
+
+    sets = {**small, "total_steps": 300, "eval_every": 150, "log_every": 100, "intrinsic_alpha": 0.2,
+            "intrinsic": "toy"}
+    run = tmp_path / "toy"
+    args = ["train", "--preset", "fetchreach-sac", "--run-dir", str(run), "--no-progress"]
+    assert main(args + [f"--set={k}={v}" for k, v in sets.items()]) == 0, capsys.readouterr().err
+    last = read_rows(run / "metrics.csv")[-1]
+    assert last["mean_raw_intrinsic"] > 0 and last["intrinsic_loss"] > 0 and last["mean_raw_kl"] is None
+    assert -1.0 <= last["mean_intrinsic_reward"] <= 0.0 and last["intrinsic_bound_high"] > 0
+    keys = np.load(checkpoint.find(run) / "state.npz").files
+    assert ".intrinsic.params['w']" in keys and any(k.startswith(".intrinsic.opt") for k in keys)
+    assert main(["train", "--preset", "fetchreach-sac", "--set", "intrinsic=toyy", "--no-progress"]) == 2
+    assert "toy" in capsys.readouterr().err  # the choices come from the registry
+
+
+@pytest.mark.parametrize("kind", ["rnd", "toy"])
+def test_the_video_timeline_shows_the_runs_own_reward(kind, toy_registered):
+    """The rows beneath a video are the run's reward's raw values and its normalised reward, by its name."""
+    from mcrl.algo import normaliser
+    from mcrl.video.render import intrinsic_timeline
+
+    cfg = resolve_config("fetchreach-sac", {"hidden_sizes": [32], "intrinsic_hidden_sizes": [32],
+                                            "intrinsic": kind, "intrinsic_alpha": 0.2})
+    agent = Agent(10, 4, 6, cfg)
+    state, net = agent.init(0), agent.intrinsic_net
+    rng = np.random.default_rng(0)
+    obs, actions = rng.normal(size=(21, 10)).astype(np.float32), rng.uniform(-1, 1, (20, 4)).astype(np.float32)
+    raw = np.asarray(net.reward(state.intrinsic.params, state.intrinsic.untrained, obs[:-1, :6], actions, obs[1:, :6]))
+    state = state._replace(norm=normaliser.from_values(raw))  # a history these values spread over
+    rows = intrinsic_timeline(cfg, agent, state, obs, actions)
+    assert list(rows) == [net.raw_label, f"{net.title} reward (normalised)"]
+    np.testing.assert_allclose(rows[net.raw_label], raw, rtol=1e-6)
+    expected, _ = normaliser.reward(state.norm, raw, 0.0, 94.0, -1.0, 0.0)
+    np.testing.assert_allclose(rows[f"{net.title} reward (normalised)"], expected, rtol=1e-6, atol=1e-7)
+    assert np.ptp(expected) > 0.5
+    assert intrinsic_timeline(resolve_config("fetchreach-sac"), agent, agent.init(0)._replace(intrinsic=None),
+                              obs, actions) == {}

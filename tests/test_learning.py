@@ -22,4 +22,4 @@ def test_sacmc_learns_fetchreach(tmp_path):
     metrics = read_csv(run / "metrics.csv")
     # the MC reward was live: raw KL positive, normalised reward inside [-1, 0]
     last = metrics[-1]
-    assert last["mean_raw_kl"] > 0 and -1.0 <= last["mean_mc_reward"] <= 0.0
+    assert last["mean_raw_kl"] > 0 and -1.0 <= last["mean_intrinsic_reward"] <= 0.0

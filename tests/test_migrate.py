@@ -18,7 +18,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "migrate_checkpoint.p
 # today's state.npz key prefixes -> the flat names of 83e6d8d's (and 0.1's) TrainState fields
 OLD_NAMES = {".q_target": ".critic_target", ".q.opt": ".critic_opt", ".q.params": ".critic", ".pi.opt": ".actor_opt",
              ".pi.params": ".actor", ".ent.opt": ".ent_opt", ".ent.params": ".log_ent_coef",
-             ".mc_models.opt": ".mc_opt", ".mc_models.params": ".mc"}
+             ".intrinsic.opt": ".mc_opt", ".intrinsic.params": ".mc"}
 
 
 def _script():

@@ -49,7 +49,7 @@ def _leaves_equal(a, b):
 def _agent(prec: str) -> Agent:
     """SAC-MC at the thesis' FetchPush sizes."""
     cfg = resolve_config("fetchpush-sacmc-0.2", {"matmul_precision": prec})
-    return Agent(obs_dim=31, act_dim=4, mc_dim=25, cfg=cfg)
+    return Agent(obs_dim=31, act_dim=4, intrinsic_dim=25, cfg=cfg)
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def states():
 
 
 def test_parameters_stay_float32_and_identical(states):
-    for net in ("pi", "q", "mc_models"):
+    for net in ("pi", "q", "intrinsic"):
         f32, bf16 = (getattr(states[p], net).params for p in ("float32", "bfloat16"))
         assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(bf16)), net
         assert _leaves_equal(f32, bf16), net  # same names, shapes, dtypes and values: old checkpoints restore
@@ -171,7 +171,7 @@ def test_compiled_update_uses_bfloat16_dots_only_when_asked(states):
                   next_obs=next_obs, terminated=jnp.zeros(256))
 
     agent = _agent("bfloat16")
-    assert agent.cfg.use_mc_models
+    assert agent.cfg.use_intrinsic_models
     update = jax.jit(agent.update)
     dots = [line for line in update.lower(state, batch).as_text().splitlines() if "dot_general" in line]
     bf16_dot = re.compile(r"\(tensor<[0-9x]*xbf16>, tensor<[0-9x]*xbf16>\) -> tensor<[0-9x]*xf32>")
@@ -180,7 +180,7 @@ def test_compiled_update_uses_bfloat16_dots_only_when_asked(states):
     # actor (next action, current) 2 x (3 + 2 heads); the backward passes' matmuls stay float32
     assert len(bf16_dots) == 14 + 12 + 10, len(bf16_dots)
     new, _ = update(state, batch)
-    for learned in (new.pi, new.q, new.mc_models):
+    for learned in (new.pi, new.q, new.intrinsic):
         assert all(x.dtype == jnp.float32 and bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(learned.params))
 
     text32 = jax.jit(_agent("float32").update).lower(state, batch).as_text()

@@ -40,11 +40,11 @@ def test_timeline_values_equal_the_mc_modules_kl(run_dir):
     finally:
         env.close()
     # recompute independently from the recorded trajectory with the MC models' raw outputs
-    s = jnp.asarray(ep["flat_obs"][:-1, : agent.mc_dim])
-    out = agent.mc_net.forward(state.mc_models.params, s, jnp.asarray(ep["policy_actions"]))
+    s = jnp.asarray(ep["flat_obs"][:-1, : agent.intrinsic_dim])
+    out = agent.intrinsic_net.models.forward(state.intrinsic.params, s, jnp.asarray(ep["policy_actions"]))
     kl = np.asarray(gaussian_kl(out.mu_t, out.log_std_t, out.mu_a, out.log_std_a).sum(-1))
     lo, hi = normaliser.bounds(state.norm, cfg.min_percentile, cfg.max_percentile)
-    r_mc = np.asarray(normaliser.scale(jnp.asarray(kl), lo, hi, cfg.mc_reward_low, cfg.mc_reward_high))
+    r_mc = np.asarray(normaliser.scale(jnp.asarray(kl), lo, hi, cfg.intrinsic_reward_low, cfg.intrinsic_reward_high))
     tl = Timeline(ep["series"], ep["success"], width=480)
     assert tl.T == ep["length"] == 50
     for t in (0, 17, 49):

@@ -55,8 +55,8 @@ def _write_run(run_dir: Path, alpha: float, seed: int, final: tuple[float, float
         row = {"step": s, "actor_loss": -s / 100 + rng.normal(), "critic_loss": 1 + rng.random(),
                "ent_coef": 0.1 * np.exp(-s / 500), "train_return": -45 + s / 100, "train_success_rate": s / 2000}
         if alpha > 0:  # MC columns stay empty for SAC runs, as the logger writes them
-            row.update(transition_model_loss=-s / 200, action_model_loss=-s / 300, mean_mc_reward=-0.5 + s / 4000,
-                       mean_raw_kl=0.1 + s / 1000)
+            row.update(transition_model_loss=-s / 200, action_model_loss=-s / 300,
+                       mean_intrinsic_reward=-0.5 + s / 4000, mean_raw_kl=0.1 + s / 1000)
         metrics.append(row)
     _write_csv(run_dir / "metrics.csv", METRIC_COLUMNS, metrics)
     if done:

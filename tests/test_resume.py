@@ -66,3 +66,50 @@ def test_leftover_temporary_checkpoint_from_a_killed_save_is_ignored(tmp_path, s
     (tmp / "state.npz").write_bytes(b"PK\x03\x04trunc")
     assert checkpoint.find(run) == good
     load_policy(run)  # still loads
+
+
+def test_a_run_from_before_the_renames_resumes_exactly(tmp_path, small):
+    """A run directory as mcrl wrote it before issue 52's renames (config keys mc_alpha, mc_hidden_sizes, ...;
+    state.npz keys `.mc_models.*` and `.metric_sums['mean_mc_reward']`; metrics.csv columns `mean_mc_reward`,
+    `mc_bound_low`, `mc_bound_high`), killed after its step-200 checkpoint, resumes to the numbers of the
+    uninterrupted run, and its metrics.csv then has today's column names."""
+    import json
+    import shutil
+
+    import numpy as np
+
+    from mcrl.config import RENAMED, resolve_config
+    from mcrl.run import rundir
+    from mcrl.run.checkpoint import RENAMED_KEYS
+    from mcrl.run.rundir import RENAMED_COLUMNS, read_rows
+    from mcrl.run.trainer import resume, train
+
+    cfg = resolve_config("fetchreach-sacmc", {**small, "total_steps": 300, "eval_every": 150, "log_every": 50,
+                                              "checkpoint_every": 100, "keep_checkpoints": 5})
+    full = train(cfg, tmp_path / "full", progress=False)
+    old = tmp_path / "old"
+    shutil.copytree(full, old)
+    shutil.rmtree(old / "checkpoints" / rundir.checkpoint_name(300))
+    rundir.write_latest(old, rundir.checkpoint_name(200))
+    for name in (rundir.DONE, rundir.FINAL_EVAL):
+        (old / name).unlink()
+    # ... written by the code before the renames
+    new_to_old = {new: o for o, new in RENAMED.items()}
+    (old / "config.json").write_text(json.dumps({new_to_old.get(k, k): v for k, v in cfg.fields().items()}))
+    for ck in (old / "checkpoints").glob("step_*"):
+        with np.load(ck / "state.npz") as f:
+            arrays = {k: f[k] for k in f.files}
+        for o, new in RENAMED_KEYS:
+            arrays = {(o + k[len(new):] if k.startswith(new) else k): v for k, v in arrays.items()}
+        assert any(k.startswith(".mc_models.params") for k in arrays)
+        np.savez(ck / "state.npz", **arrays)
+    header, *lines = (old / "metrics.csv").read_text().split("\n")
+    header = ",".join({new: o for o, new in RENAMED_COLUMNS.items()}.get(c, c) for c in header.split(","))
+    (old / "metrics.csv").write_text("\n".join([header, *lines]))
+    assert "mean_mc_reward" in read_rows(old / "metrics.csv")[-1]  # read under both names
+    assert read_rows(old / "metrics.csv")[-1]["mean_intrinsic_reward"] is not None
+
+    resume(old, progress=False)
+    assert (old / "eval.csv").read_text() == (full / "eval.csv").read_text()
+    assert _rows(old / "metrics.csv") == _rows(full / "metrics.csv") and len(_rows(full / "metrics.csv")) == 6
+    assert (old / "metrics.csv").read_text().split("\n")[0] == (full / "metrics.csv").read_text().split("\n")[0]

@@ -29,7 +29,7 @@ def test_alpha_zero_with_mc_models_is_bit_identical_to_sac(tmp_path, small):
     mc0 = _run(tmp_path, "mc0", small, mc_alpha=0.0, mc_models=True)
     mc2 = _run(tmp_path, "mc2", small, mc_alpha=0.2)
     s_sac, s_mc0, s_mc2 = _params(sac), _params(mc0), _params(mc2)
-    assert s_mc0.mc_models is not None and s_sac.mc_models is None  # the MC models really trained alongside
+    assert s_mc0.intrinsic is not None and s_sac.intrinsic is None  # the MC models really trained alongside
     assert _same(s_sac.pi.params, s_mc0.pi.params) and _same(s_sac.q.params, s_mc0.q.params)
     assert np.array_equal(s_sac.ent.params, s_mc0.ent.params)
     assert _same(s_sac.q.opt, s_mc0.q.opt) and _same(s_sac.q_target, s_mc0.q_target)
@@ -51,7 +51,7 @@ def test_checkpoint_holds_everything_and_no_pickle(tmp_path, small):
     with np.load(ck / "state.npz", allow_pickle=False) as f:
         keys = set(f.files)
     for part in (".pi.params", ".pi.opt", ".q.params", ".q.opt", ".q_target", ".ent.params", ".ent.opt",
-                 ".mc_models.params", ".mc_models.opt", ".key"):
+                 ".intrinsic.params", ".intrinsic.opt", ".key"):
         assert any(k.startswith(part) for k in keys), part
     with np.load(ck / "normaliser.npz", allow_pickle=False) as f:
         assert {"ring", "ptr", "count", "c3_index", "c3_count"} <= set(f.files)

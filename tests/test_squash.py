@@ -59,7 +59,7 @@ def test_saturation_counts_entries_below_one_in_a_million():
 
 def _agent(correction):
     cfg = resolve_config("fetchpush-sac", {"squash_correction": correction, "hidden_sizes": [32, 32]})
-    return Agent(obs_dim=31, act_dim=4, mc_dim=25, cfg=cfg)
+    return Agent(obs_dim=31, act_dim=4, intrinsic_dim=25, cfg=cfg)
 
 
 def _batch(seed=0, n=64):

@@ -65,14 +65,14 @@ def test_group_matches_runs_trained_alone(tmp_path):
         g_rows, a_rows = read_rows(group_dirs[i] / "metrics.csv"), read_rows(alone / "metrics.csv")
         assert [r["step"] for r in g_rows] == [r["step"] for r in a_rows] and len(g_rows) == 13
         for g, a in zip(g_rows, a_rows):
-            for k in ("q_mean", "critic_loss", "actor_loss", "ent_coef", "mean_total_reward", "mean_mc_reward",
+            for k in ("q_mean", "critic_loss", "actor_loss", "ent_coef", "mean_total_reward", "mean_intrinsic_reward",
                       "train_return"):
                 assert (g[k] is None) == (a[k] is None), k
                 if g[k] is not None:
                     assert g[k] == pytest.approx(a[k], rel=1e-4, abs=1e-5), (k, g["step"])
         assert read_rows(group_dirs[i] / "eval.csv") == read_rows(alone / "eval.csv")
     _, _, sac_state = load_policy(group_dirs[0])
-    assert sac_state.mc_models is None and sac_state.norm is None
+    assert sac_state.intrinsic is None and sac_state.norm is None
     assert read_rows(group_dirs[0] / "metrics.csv")[-1]["mean_raw_kl"] is None
     assert read_rows(group_dirs[1] / "metrics.csv")[-1]["mean_raw_kl"] > 0
 
@@ -95,7 +95,7 @@ def test_group_with_another_intrinsic_reward_matches_runs_alone(tmp_path, kind):
         g_rows, a_rows = read_rows(group_dirs[i] / "metrics.csv"), read_rows(alone / "metrics.csv")
         assert [r["step"] for r in g_rows] == [r["step"] for r in a_rows] and len(g_rows) == 13
         for g, a in zip(g_rows, a_rows):
-            for k in ("q_mean", "critic_loss", "mean_total_reward", "mean_mc_reward", "intrinsic_loss",
+            for k in ("q_mean", "critic_loss", "mean_total_reward", "mean_intrinsic_reward", "intrinsic_loss",
                       "mean_raw_intrinsic"):
                 assert (g[k] is None) == (a[k] is None), k
                 if g[k] is not None:

@@ -3,6 +3,7 @@ SIGTERM ends with 130 or 143 after saving a checkpoint it resumes from exactly (
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
@@ -79,11 +80,11 @@ def cmd_presets(args) -> int:
     from mcrl.config import KEY_NOTES, PRESETS, Config, resolve_config
 
     if args.keys:
-        for k, v in Config().to_dict().items():
+        for k, v in Config().fields().items():
             print(f"{k} = {v!r}" + (f"  # {KEY_NOTES[k]}" if k in KEY_NOTES else ""))
         return 0
     if args.name:
-        print(resolve_config(args.name).to_json())
+        print(json.dumps(resolve_config(args.name).fields(), indent=2, sort_keys=True))
         return 0
     width = max(map(len, PRESETS))
     for name, (desc, _) in PRESETS.items():
@@ -271,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "and resumes the others from their checkpoints; `mcrl sweep --exp EXP` alone continues "
                        "the sweep recorded there.")
     p.add_argument("--preset", help="a preset name (`mcrl presets`)")
-    p.add_argument("--alphas", help="comma-separated mc_alpha values, e.g. 0,0.2,0.4,0.6,0.8,1.0")
+    p.add_argument("--alphas", help="comma-separated intrinsic_alpha values, e.g. 0,0.2,0.4,0.6,0.8,1.0")
     p.add_argument("--seeds", help="a count (6 = seeds 0..5) or a comma-separated list of seeds")
     p.add_argument("--steps", type=int, help="total environment steps of every run")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override of a config key (repeatable)")
@@ -297,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar (run lines are still printed)")
     p.set_defaults(func=cmd_sweep)
 
-    p = sub.add_parser("render", help="video of the saved policy with the MC reward timeline")
+    p = sub.add_parser("render", help="video of the saved policy with its intrinsic reward's timeline")
     p.add_argument("run_dir")
     p.add_argument("--episodes", type=int, default=1)
     p.add_argument("--format", choices=("mp4", "gif"), default="mp4")

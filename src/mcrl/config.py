@@ -13,6 +13,7 @@ from typing import Any
 
 import yaml
 
+from mcrl.algo import intrinsic as intrinsic_rewards
 from mcrl.errors import MCRLError
 
 
@@ -42,19 +43,19 @@ class Config:
     her: bool | None = None  # None = on for goal-conditioned Dict environments
     her_strategy: str = "future"  # future | final | episode
     her_k: int = 4  # sampled goals per real transition: relabel fraction k / (k + 1)
-    # --- morphological computation ---
-    mc_alpha: float = 0.0  # weight of the MC reward: (1 - a) r_ext + a r_mc
-    mc_models: bool | None = None  # None = train the MC models iff mc_alpha > 0
-    intrinsic: str = "mc"  # the reward mc_alpha mixes in: mc (thesis) | rnd | icm | disagreement (docs/intrinsic.md)
-    mc_lr: float = 3e-4
-    mc_hidden_sizes: tuple[int, ...] = (256, 256, 256, 256, 256)
-    mc_state: str = "observation"  # observation | full (observation + achieved_goal + desired_goal)
-    mc_reduction: str = "transition"  # transition (thesis text) | batch (thesis code: one batch-mean KL)
-    mc_history: int | None = None  # gradient steps of KL values the normaliser keeps; None = the whole run
+    # --- the intrinsic reward (docs/intrinsic.md); renamed keys were mc_* before (`RENAMED`) ---
+    intrinsic: str = "mc"  # the reward intrinsic_alpha mixes in: a name of mcrl.algo.intrinsic's registry
+    intrinsic_alpha: float = 0.0  # its weight: (1 - a) r_ext + a r_int
+    intrinsic_models: bool | None = None  # None = train the reward's models iff intrinsic_alpha > 0
+    intrinsic_lr: float = 3e-4
+    intrinsic_hidden_sizes: tuple[int, ...] = (256, 256, 256, 256, 256)
+    intrinsic_state: str = "observation"  # observation | full (observation + achieved_goal + desired_goal)
+    mc_reduction: str = "transition"  # MC only: transition (thesis text) | batch (thesis code: one batch-mean KL)
+    intrinsic_history: int | None = None  # gradient steps of raw values the normaliser keeps; None = the whole run
     min_percentile: float = 0.0
     max_percentile: float = 94.0
-    mc_reward_low: float = -1.0
-    mc_reward_high: float = 0.0
+    intrinsic_reward_low: float = -1.0
+    intrinsic_reward_high: float = 0.0
     # --- evaluation, logging, checkpoints ---
     eval_every: int = 2_500
     eval_episodes: int = 10
@@ -69,36 +70,47 @@ class Config:
 
     # ---- derived ----
     @property
-    def use_mc_models(self) -> bool:
-        return self.mc_alpha > 0 if self.mc_models is None else bool(self.mc_models)
+    def use_intrinsic_models(self) -> bool:
+        """Whether this run trains the models of its intrinsic reward (SAC runs do not, unless asked)."""
+        return self.intrinsic_alpha > 0 if self.intrinsic_models is None else bool(self.intrinsic_models)
 
     @property
-    def intrinsic_models(self) -> str | None:
-        """The kind of intrinsic-reward models this run trains (`intrinsic`); None for plain SAC (none trained)."""
-        return self.intrinsic if self.use_mc_models else None
-
-    @property
-    def mc_values_per_step(self) -> int:
-        """KL values one gradient step adds to the normaliser's history."""
+    def intrinsic_values_per_step(self) -> int:
+        """Raw values one gradient step adds to the normaliser's history."""
         return 1 if self.mc_reduction == "batch" else self.batch_size
 
     @property
-    def mc_history_values(self) -> int | None:
-        """Capacity of the normaliser's window in KL values; None = every value of the run."""
-        return None if self.mc_history is None else self.mc_history * self.mc_values_per_step
+    def intrinsic_history_values(self) -> int | None:
+        """Capacity of the normaliser's window in raw values; None = every value of the run."""
+        return None if self.intrinsic_history is None else self.intrinsic_history * self.intrinsic_values_per_step
+
+    def __getattr__(self, name: str) -> Any:
+        """Code written against the old names (`cfg.mc_alpha`, `cfg.use_mc_models`) keeps reading them."""
+        new = _OLD_ATTRIBUTES.get(name)
+        if new is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return getattr(self, new)
 
     @property
     def n_final_eval_episodes(self) -> int:
         return self.eval_episodes if self.final_eval_episodes is None else self.final_eval_episodes
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Every field, as files store it (config.json, meta.json, sweep.json): the keys of `STORED_AS` under
+        their stored names."""
+        return stored(dataclasses.asdict(self))
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
+    def fields(self) -> dict[str, Any]:
+        """Every field under its own name (what `mcrl presets` shows)."""
+        return dataclasses.asdict(self)
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Config":
+        """A config from keys and values; the old names of renamed keys (`RENAMED`) are read as the new ones."""
+        d = canonical(d)
         unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise MCRLError(f"unknown config key(s) {sorted(unknown)}: run `mcrl presets --keys` to list valid keys")
@@ -121,62 +133,101 @@ class Config:
 # the value a key had in effect before it existed, for config.json files written then (`Config.from_run_json`)
 TRAINED_BEFORE_KEY: dict[str, Any] = {"squash_correction": "exact"}
 
-INTRINSIC = ("mc", "rnd", "icm", "disagreement")  # `intrinsic`'s values: mcrl.algo.intrinsic builds each
+# Keys that serve every intrinsic reward but were named after MC, old name -> new name (issue 52). The old names
+# are read wherever a user or a file gives a key: --set, sweep files, resolve_config, config.json, sweep.json.
+RENAMED: dict[str, str] = {
+    "mc_alpha": "intrinsic_alpha", "mc_models": "intrinsic_models", "mc_lr": "intrinsic_lr",
+    "mc_hidden_sizes": "intrinsic_hidden_sizes", "mc_state": "intrinsic_state", "mc_history": "intrinsic_history",
+    "mc_reward_low": "intrinsic_reward_low", "mc_reward_high": "intrinsic_reward_high",
+}
+_OLD_ATTRIBUTES = {**RENAMED, "use_mc_models": "use_intrinsic_models",
+                   "mc_values_per_step": "intrinsic_values_per_step", "mc_history_values": "intrinsic_history_values"}
+# Files (config.json, meta.json, sweep.json) still store these keys under their old names, because the report
+# (mcrl.analysis) groups runs by `Config.to_dict()`'s keys and reads them by the old names; once it reads the new
+# ones, emptying this switches the files (readers take either name, so older files keep working).
+STORED_AS: dict[str, str] = {new: old for old, new in RENAMED.items()}
+
+
+def canonical(d: dict[str, Any]) -> dict[str, Any]:
+    """`d` with every old key name (`RENAMED`) replaced by the new one; both names with different values is an
+    error (which one was meant?)."""
+    for old, new in RENAMED.items():
+        if old in d and new in d and json.dumps(d[new], default=str) != json.dumps(d[old], default=str):
+            raise MCRLError(f"config keys {old}={d[old]!r} and {new}={d[new]!r} disagree: {old} is the old name of "
+                            f"{new}; give only {new}")
+    return {RENAMED.get(k, k): v for k, v in d.items()}  # in the order given (a grid's run names follow it)
+
+
+def stored(d: dict[str, Any]) -> dict[str, Any]:
+    """`d` (new key names) with its keys as files store them (`STORED_AS`)."""
+    return {STORED_AS.get(k, k): v for k, v in d.items()}
+
 
 # One line about a key, where its name alone does not say it (`mcrl presets --keys` prints it beside the key).
 KEY_NOTES: dict[str, str] = {
-    "mc_alpha": "weight of the intrinsic reward `intrinsic` picks: (1 - a) r_ext + a r_int; 0 = plain SAC",
-    "mc_models": "train the intrinsic reward's models even at mc_alpha=0 (null: iff mc_alpha > 0)",
-    "intrinsic": "the intrinsic reward mc_alpha mixes in: mc (thesis) | rnd | icm | disagreement (docs/intrinsic.md)",
-    "mc_lr": "Adam learning rate of the intrinsic reward's models (any `intrinsic`)",
-    "mc_hidden_sizes": "MC models' hidden layers; rnd/icm/disagreement use their papers' depths at its widest width",
-    "mc_state": "the state every intrinsic reward sees: observation | full (+ achieved and desired goal)",
+    "intrinsic": "the intrinsic reward intrinsic_alpha mixes in: mc (thesis) | rnd | icm | disagreement "
+                 "(docs/intrinsic.md), or any other registered in mcrl.algo.intrinsic",
+    "intrinsic_alpha": "weight of the intrinsic reward: (1 - a) r_ext + a r_int; 0 = plain SAC (was mc_alpha)",
+    "intrinsic_models": "train the intrinsic reward's models even at intrinsic_alpha=0 (null: iff intrinsic_alpha "
+                        "> 0; was mc_models)",
+    "intrinsic_lr": "Adam learning rate of the intrinsic reward's models (was mc_lr)",
+    "intrinsic_hidden_sizes": "MC models' hidden layers; rnd/icm/disagreement use their papers' depths at its "
+                              "widest width (was mc_hidden_sizes)",
+    "intrinsic_state": "the state the intrinsic reward sees: observation | full (+ achieved and desired goal; "
+                       "was mc_state)",
+    "intrinsic_history": "gradient steps of raw values the normaliser's percentiles cover; null = the whole run "
+                         "(was mc_history)",
+    "intrinsic_reward_low": "the normalised intrinsic reward's range is [low, high] (was mc_reward_low)",
+    "intrinsic_reward_high": "the normalised intrinsic reward's range is [low, high] (was mc_reward_high)",
+    "mc_reduction": "MC only: transition (each transition's KL, thesis text) | batch (one batch-mean KL, its code)",
     "squash_correction": "tanh log-prob correction: exact log(1 - tanh(u)^2) | epsilon log(1 - a^2 + 1e-6) "
                          "(stable-baselines3 and the thesis' code; at most 13.8 nats per action entry)",
 }
 
 _FETCHPUSH = dict(env_id="FetchPush-v4", total_steps=150_000, learning_rate=3e-4, buffer_size=1_000_000,
-                  batch_size=256, tau=0.005, gamma=0.99, her=True, mc_lr=3e-4, min_percentile=0.0,
-                  max_percentile=94.0, mc_reward_low=-1.0, mc_reward_high=0.0, eval_every=5_000,
+                  batch_size=256, tau=0.005, gamma=0.99, her=True, intrinsic_lr=3e-4, min_percentile=0.0,
+                  max_percentile=94.0, intrinsic_reward_low=-1.0, intrinsic_reward_high=0.0, eval_every=5_000,
                   log_every=1_000, final_eval_episodes=100)
 # The thesis' framework ran a 27-d ant observation (no contact forces) with actions scaled by 0.4.
 _ANTMAZE = dict(env_id="AntMaze_UMazeDense-v5", env_kwargs={"include_cfrc_ext_in_observation": False},
                 action_scale=0.4, total_steps=400_000, learning_rate=4e-4, buffer_size=1_000_000,
-                batch_size=2048, tau=0.05, gamma=0.95, her=True, mc_lr=4e-4, min_percentile=0.0,
-                max_percentile=98.0, mc_reward_low=0.0, mc_reward_high=1.0, eval_every=10_000,
+                batch_size=2048, tau=0.05, gamma=0.95, her=True, intrinsic_lr=4e-4, min_percentile=0.0,
+                max_percentile=98.0, intrinsic_reward_low=0.0, intrinsic_reward_high=1.0, eval_every=10_000,
                 eval_episodes=10, log_every=2_000, final_eval_episodes=100)
-_FETCHREACH = dict(env_id="FetchReach-v4", total_steps=9_000, her=True, mc_lr=3e-4, max_percentile=94.0,
-                   mc_reward_low=-1.0, mc_reward_high=0.0, eval_every=1_000, log_every=250)
+_FETCHREACH = dict(env_id="FetchReach-v4", total_steps=9_000, her=True, intrinsic_lr=3e-4, max_percentile=94.0,
+                   intrinsic_reward_low=-1.0, intrinsic_reward_high=0.0, eval_every=1_000, log_every=250)
 
 # name -> (description, overrides of the Config defaults)
 PRESETS: dict[str, tuple[str, dict[str, Any]]] = {
-    "fetchpush-sac": ("Thesis Table A.1: SAC+HER baseline on FetchPush, 150k steps", {**_FETCHPUSH, "mc_alpha": 0.0}),
+    "fetchpush-sac": ("Thesis Table A.1: SAC+HER baseline on FetchPush, 150k steps",
+                      {**_FETCHPUSH, "intrinsic_alpha": 0.0}),
     **{
         f"fetchpush-sacmc-{a}": (f"Thesis Table A.2: SAC-MC alpha={a} on FetchPush, 150k steps",
-                                 {**_FETCHPUSH, "mc_alpha": float(a)})
+                                 {**_FETCHPUSH, "intrinsic_alpha": float(a)})
         for a in ("0.2", "0.4", "0.6", "0.8", "1.0")
     },
     "antmaze-sac": ("Thesis Table A.3: SAC+HER baseline on AntMaze (dense U-maze), 400k steps",
-                    {**_ANTMAZE, "mc_alpha": 0.0}),
+                    {**_ANTMAZE, "intrinsic_alpha": 0.0}),
     "antmaze-sacmc": ("Thesis Table A.4: SAC-MC alpha=0.2, max percentile 98 on AntMaze, 400k steps",
-                      {**_ANTMAZE, "mc_alpha": 0.2}),
+                      {**_ANTMAZE, "intrinsic_alpha": 0.2}),
     "antmaze-sacmc-p94": ("Thesis Table C.1: SAC-MC alpha=0.2, max percentile 94 on AntMaze, 400k steps",
-                          {**_ANTMAZE, "mc_alpha": 0.2, "max_percentile": 94.0}),
-    "fetchreach-sac": ("Quick demo: SAC+HER on FetchReach, 9k steps (thesis sizes)", {**_FETCHREACH, "mc_alpha": 0.0}),
+                          {**_ANTMAZE, "intrinsic_alpha": 0.2, "max_percentile": 94.0}),
+    "fetchreach-sac": ("Quick demo: SAC+HER on FetchReach, 9k steps (thesis sizes)",
+                       {**_FETCHREACH, "intrinsic_alpha": 0.0}),
     "fetchreach-sacmc": ("Quick demo: SAC-MC alpha=0.2 on FetchReach, 9k steps (thesis sizes)",
-                         {**_FETCHREACH, "mc_alpha": 0.2}),
+                         {**_FETCHREACH, "intrinsic_alpha": 0.2}),
 }
 
 
 def resolve_config(preset: str | None = None, overrides: dict[str, Any] | None = None) -> Config:
-    """The preset's values, then `overrides` on top; validated."""
+    """The preset's values, then `overrides` on top (old key names read as the new ones); validated."""
     d: dict[str, Any] = {}
     if preset is not None:
         if preset not in PRESETS:
             raise MCRLError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)} (`mcrl presets`)")
         d.update(PRESETS[preset][1])
         d["preset"] = preset
-    d.update(overrides or {})
+    d.update(canonical(overrides or {}))
     return Config.from_dict(d)
 
 
@@ -185,7 +236,7 @@ def parse_set(items: list[str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for item in items:
         if "=" not in item:
-            raise MCRLError(f"bad --set {item!r}: write key=value, e.g. --set mc_alpha=0.2")
+            raise MCRLError(f"bad --set {item!r}: write key=value, e.g. --set intrinsic_alpha=0.2")
         k, v = item.split("=", 1)
         try:
             out[k.strip()] = yaml.safe_load(v)
@@ -237,8 +288,9 @@ def validate(cfg: Config) -> None:
     def bad(msg: str) -> None:
         raise MCRLError(msg)
 
-    if not 0.0 <= cfg.mc_alpha <= 1.0:
-        bad(f"mc_alpha={cfg.mc_alpha} is outside [0, 1]: pick a weight between 0 (pure SAC) and 1 (MC reward only)")
+    if not 0.0 <= cfg.intrinsic_alpha <= 1.0:
+        bad(f"intrinsic_alpha={cfg.intrinsic_alpha} is outside [0, 1]: pick a weight between 0 (pure SAC) and 1 "
+            "(the intrinsic reward only)")
     for name in ("min_percentile", "max_percentile"):
         v = getattr(cfg, name)
         if not 0.0 <= v <= 100.0:
@@ -246,16 +298,18 @@ def validate(cfg: Config) -> None:
     if cfg.min_percentile >= cfg.max_percentile:
         bad(f"min_percentile={cfg.min_percentile} >= max_percentile={cfg.max_percentile}: "
             "the lower bound's percentile must be below the upper one (thesis: 0 and 94)")
-    if cfg.mc_reward_low >= cfg.mc_reward_high:
-        bad(f"mc_reward_low={cfg.mc_reward_low} >= mc_reward_high={cfg.mc_reward_high}: give a range low < high")
+    if cfg.intrinsic_reward_low >= cfg.intrinsic_reward_high:
+        bad(f"intrinsic_reward_low={cfg.intrinsic_reward_low} >= intrinsic_reward_high={cfg.intrinsic_reward_high}: "
+            "give a range low < high")
     if cfg.her_strategy not in ("future", "final", "episode"):
         bad(f"her_strategy={cfg.her_strategy!r}: choose future, final or episode")
-    if cfg.mc_state not in ("observation", "full"):
-        bad(f"mc_state={cfg.mc_state!r}: choose observation or full")
+    if cfg.intrinsic_state not in ("observation", "full"):
+        bad(f"intrinsic_state={cfg.intrinsic_state!r}: choose observation or full")
     if cfg.mc_reduction not in ("transition", "batch"):
         bad(f"mc_reduction={cfg.mc_reduction!r}: choose transition or batch")
-    if cfg.intrinsic not in INTRINSIC:
-        bad(f"intrinsic={cfg.intrinsic!r}: choose mc (the thesis' MC reward), rnd, icm or disagreement")
+    if cfg.intrinsic not in intrinsic_rewards.names():
+        bad(f"intrinsic={cfg.intrinsic!r}: choose one of {', '.join(intrinsic_rewards.names())} "
+            "(mc: the thesis' MC reward; docs/intrinsic.md)")
     if cfg.intrinsic != "mc" and cfg.mc_reduction == "batch":
         bad(f"mc_reduction=batch is the thesis code's MC variant (one batch-mean KL), not defined for "
             f"intrinsic={cfg.intrinsic}: drop it (mc_reduction=transition)")
@@ -267,29 +321,32 @@ def validate(cfg: Config) -> None:
     if cfg.matmul_precision not in ("float32", "bfloat16"):
         bad(f"matmul_precision={cfg.matmul_precision!r}: choose float32 (the default) or bfloat16 "
             "(bfloat16 matmul inputs, float32 accumulation and parameters)")
-    if cfg.mc_alpha > 0 and cfg.mc_models is False:
-        bad(f"mc_alpha={cfg.mc_alpha} needs the MC models, but mc_models=false: drop --set mc_models=false "
-            "(or set mc_alpha=0 for plain SAC)")
+    if cfg.intrinsic_alpha > 0 and cfg.intrinsic_models is False:
+        bad(f"intrinsic_alpha={cfg.intrinsic_alpha} needs the intrinsic reward's models, but intrinsic_models=false: "
+            "drop --set intrinsic_models=false (or set intrinsic_alpha=0 for plain SAC)")
     for name in ("total_steps", "batch_size", "buffer_size", "eval_episodes", "log_every",
                  "checkpoint_every", "keep_checkpoints"):
         if getattr(cfg, name) < 1:
             bad(f"{name}={getattr(cfg, name)} must be at least 1")
-    for name in ("mc_history", "final_eval_episodes"):
+    for name in ("intrinsic_history", "final_eval_episodes"):
         if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
-            bad(f"{name}={getattr(cfg, name)} must be at least 1, or null (mc_history: the whole run; "
+            bad(f"{name}={getattr(cfg, name)} must be at least 1, or null (intrinsic_history: the whole run; "
                 "final_eval_episodes: eval_episodes)")
-    if cfg.mc_history is not None and cfg.mc_history_values > 100_000_000:
-        bad(f"mc_history={cfg.mc_history} gradient steps is {cfg.mc_history_values:,} KL values (> 100M) for the "
-            "window's ring buffer: pick a shorter window, or null to count the whole run without a ring")
-    if cfg.use_mc_models and cfg.mc_history is None and cfg.total_steps * cfg.mc_values_per_step >= 2**31:
-        bad(f"total_steps={cfg.total_steps} x {cfg.mc_values_per_step} KL values per step overflows the "
-            "normaliser's whole-run counts (2^31): set a window, e.g. --set mc_history=400000")
+    if cfg.intrinsic_history is not None and cfg.intrinsic_history_values > 100_000_000:
+        bad(f"intrinsic_history={cfg.intrinsic_history} gradient steps is {cfg.intrinsic_history_values:,} raw "
+            "values (> 100M) for the window's ring buffer: pick a shorter window, or null to count the whole run "
+            "without a ring")
+    if (cfg.use_intrinsic_models and cfg.intrinsic_history is None
+            and cfg.total_steps * cfg.intrinsic_values_per_step >= 2**31):
+        bad(f"total_steps={cfg.total_steps} x {cfg.intrinsic_values_per_step} raw values per step overflows the "
+            "normaliser's whole-run counts (2^31): set a window, e.g. --set intrinsic_history=400000")
     for name in ("learning_starts", "eval_every", "her_k", "video_every"):
         if getattr(cfg, name) < 0:
             bad(f"{name}={getattr(cfg, name)} must be non-negative")
-    if not cfg.hidden_sizes or not cfg.mc_hidden_sizes or min(cfg.hidden_sizes + cfg.mc_hidden_sizes) < 1:
-        bad("hidden_sizes and mc_hidden_sizes need at least one layer of positive width, e.g. [256, 256, 256]")
-    for name in ("learning_rate", "mc_lr", "ent_coef_init", "action_scale"):
+    if (not cfg.hidden_sizes or not cfg.intrinsic_hidden_sizes
+            or min(cfg.hidden_sizes + cfg.intrinsic_hidden_sizes) < 1):
+        bad("hidden_sizes and intrinsic_hidden_sizes need at least one layer of positive width, e.g. [256, 256, 256]")
+    for name in ("learning_rate", "intrinsic_lr", "ent_coef_init", "action_scale"):
         if not getattr(cfg, name) > 0:
             bad(f"{name}={getattr(cfg, name)} must be positive")
     if not (0 < cfg.tau <= 1 and 0 <= cfg.gamma < 1):

@@ -36,7 +36,7 @@ class EnvSpec:
     act_dim: int
     observation_dim: int  # the `observation` part (goal envs) or the whole Box
     goal_dim: int  # 0 for Box envs
-    mc_dim: int  # the MC state: first mc_dim entries of the flat obs
+    intrinsic_dim: int  # the intrinsic state: first intrinsic_dim entries of the flat obs
     max_episode_steps: int | None
 
     def uses_her(self, cfg: Config) -> bool:
@@ -76,9 +76,9 @@ def inspect(env: gym.Env, cfg: Config) -> EnvSpec:
     else:
         raise MCRLError(f"{cfg.env_id} has a {type(space).__name__} observation space: mcrl needs a Box or a "
                         "goal Dict (observation, achieved_goal, desired_goal)")
-    mc_dim = obs_dim if cfg.mc_state == "full" else od
+    intrinsic_dim = obs_dim if cfg.intrinsic_state == "full" else od
     steps = env.spec.max_episode_steps if env.spec is not None else None
-    return EnvSpec(goal_env, obs_dim, act_dim, od, gd, mc_dim, steps)
+    return EnvSpec(goal_env, obs_dim, act_dim, od, gd, intrinsic_dim, steps)
 
 
 def flatten_obs(obs) -> np.ndarray:

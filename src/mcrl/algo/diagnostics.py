@@ -12,7 +12,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.metrics import UPDATE_METRICS, reported
+from mcrl.algo.metrics import BOUNDS, UPDATE_METRICS, reported
 
 
 class Diagnostics(NamedTuple):
@@ -28,27 +28,27 @@ def init() -> Diagnostics:
 def add(diag: Diagnostics, metrics: dict) -> Diagnostics:
     """`diag` with one gradient step's `metrics` (`Agent.update`'s) added; metrics it lacks count as 0."""
     sums = {k: diag.metric_sums[k] + metrics.get(k, 0.0) for k in UPDATE_METRICS}
-    bounds = jnp.stack([metrics["mc_bound_low"], metrics["mc_bound_high"]]) if "mc_bound_low" in metrics \
-        else diag.bounds
+    bounds = jnp.stack([metrics[b] for b in BOUNDS]) if BOUNDS[0] in metrics else diag.bounds
     return Diagnostics(sums, diag.metric_count + 1, bounds)
 
 
-def means(sums: dict, count: int, bounds, intrinsic_models: str | None) -> dict[str, float]:
-    """The log row's means from the sums of `count` gradient steps: the metrics a run with `intrinsic_models`
-    (`Config.intrinsic_models`) reports (`mcrl.algo.metrics.reported`), and the bounds if it has any."""
-    keep = reported(intrinsic_models)
+def means(sums: dict, count: int, bounds, own: tuple[str, ...] | None) -> dict[str, float]:
+    """The log row's means from the sums of `count` gradient steps: the metrics of a run whose intrinsic reward
+    reports `own` (`Agent.own_metrics`; None: plain SAC) (`mcrl.algo.metrics.reported`), and the bounds if it has
+    intrinsic models."""
+    keep = reported(own)
     out = {k: float(v) / count for k, v in sums.items() if k in keep}
-    if intrinsic_models is not None:
-        out["mc_bound_low"], out["mc_bound_high"] = float(bounds[0]), float(bounds[1])
+    if own is not None:
+        out.update(zip(BOUNDS, (float(bounds[0]), float(bounds[1]))))
     return out
 
 
-def read(diag: Diagnostics, intrinsic_models: str | None) -> tuple[dict[str, float], Diagnostics]:
+def read(diag: Diagnostics, own: tuple[str, ...] | None) -> tuple[dict[str, float], Diagnostics]:
     """Means since the last read ({} if no step was taken), and the diagnostics with the sums reset (host side)."""
     sums, count, bounds = jax.device_get((diag.metric_sums, diag.metric_count, diag.bounds))
     if int(count) == 0:
         return {}, diag
-    return means(sums, int(count), bounds, intrinsic_models), reset(diag)
+    return means(sums, int(count), bounds, own), reset(diag)
 
 
 def reset(diag: Diagnostics) -> Diagnostics:

@@ -23,12 +23,14 @@ paper sums them: the same up to a constant, which the percentile normaliser remo
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, Sizes, moments_init, moments_update, standardise
+from mcrl.algo.intrinsic import Raw, Sizes
+from mcrl.algo.moments import moments_init, moments_update, standardise
 from mcrl.algo.networks import ACTIVATIONS, dense_kwargs
 
 MEMBERS = 5  # the paper's ensemble size (its code's num_dynamics)
@@ -73,6 +75,9 @@ class Ensemble(ForwardModel):
 class Disagreement(Sizes):
     """The ensemble for states of `state_dim` and actions of `action_dim`; params {"ensemble"}, untrained {"obs"}."""
 
+    title: ClassVar[str] = "Disagreement"
+    raw_label: ClassVar[str] = "raw disagreement"
+
     @property
     def ensemble(self) -> Ensemble:
         return Ensemble(self.width, self.state_dim, self.init_scheme, self.matmul_precision)
@@ -98,4 +103,5 @@ class Disagreement(Sizes):
             return per_model.sum(), pred
 
         (value, pred), grads = jax.value_and_grad(loss, has_aux=True)(params)
-        return Raw(pred.var(0).mean(-1), value, grads, untrained)
+        raw = pred.var(0).mean(-1)
+        return Raw(raw, grads, untrained, self.generic_metrics(value, raw))

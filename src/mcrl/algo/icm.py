@@ -21,6 +21,7 @@ the action under a unit-variance Gaussian around the prediction, up to a constan
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,9 @@ BETA = 0.2  # the paper's weight of the forward loss against the inverse loss
 class ICM(Sizes):
     """ICM's networks for states of `state_dim` and actions of `action_dim`; params {"encoder", "inverse",
     "forward"}, nothing untrained."""
+
+    title: ClassVar[str] = "ICM"
+    raw_label: ClassVar[str] = "raw ICM error"
 
     @property
     def encoder(self) -> Stack:
@@ -75,4 +79,4 @@ class ICM(Sizes):
             return (1.0 - BETA) * inverse.mean() + BETA * forward.mean(), forward
 
         (value, forward), grads = jax.value_and_grad(loss, has_aux=True)(params)
-        return Raw(forward, value, grads, untrained)
+        return Raw(forward, grads, untrained, self.generic_metrics(value, forward))

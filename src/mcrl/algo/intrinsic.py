@@ -1,79 +1,119 @@
-"""The intrinsic rewards beside MC: one interface, chosen by the config key `intrinsic` (docs/intrinsic.md).
+"""Every intrinsic reward behind one interface, `IntrinsicReward`, and the one registry of them (config key
+`intrinsic`; docs/intrinsic.md).
 
-`mc` is the thesis' MC reward (`mcrl.algo.mc`, its own path in `mcrl.algo.sac`, kept bit for bit as it was). The
-others each live in their own module (`mcrl.algo.rnd`, `.icm`, `.disagreement`) as a frozen dataclass of
-`Sizes` (state_dim, action_dim, width, init_scheme, matmul_precision), with the same small pure interface:
+An intrinsic reward is a frozen dataclass built from the run's config (`from_config`) with three pure functions of
+arrays, which `mcrl.algo.sac.Agent.update` calls inside the one jitted gradient step:
 
-    models.init(key) -> (params, untrained)
-        `params` are trained by Adam (`mc_lr`, one step per gradient step); `untrained` is what no gradient trains
-        (RND's random target network, the running state statistics of RND and Disagreement; {} for ICM).
-    models.step(params, untrained, s, a, s_next, key) -> Raw
-        on a replay batch: the raw reward of every transition, the models' loss and its gradients, and `untrained`
-        after this batch. The reward is computed with the parameters before their update (like MC's).
-    models.reward(params, untrained, s, a, s_next) -> (B,)
-        the raw reward alone, nothing updated (to look at transitions the models have not trained on).
+    reward.init(key) -> (params, untrained)
+        `params` are trained by Adam (`intrinsic_lr`, one step per gradient step); `untrained` is what no gradient
+        trains (RND's random target network, the running state statistics of RND and Disagreement; {} for MC, ICM).
+    reward.step(params, untrained, s, a, s_next, key) -> Raw
+        on a replay batch: the raw reward of every transition, the gradients of the models' loss, `untrained` after
+        this batch, the metrics it reports (`metrics` names them) and the values its batch adds to the
+        normaliser's history. The reward is computed with the parameters before their update.
+    reward.reward(params, untrained, s, a, s_next) -> (B,)
+        the raw reward of each transition alone, nothing updated (unseen transitions, a video's timeline).
 
-All four see the same inputs: the MC state (`mc_state`: the observation part by default) of the sampled batch
-after HER relabelling, its action and next state, every gradient step, inside the one jitted update; their raw
-values go through the same percentile normaliser into [mc_reward_low, mc_reward_high] and are mixed with weight
-mc_alpha (`mcrl.algo.sac.Agent.update`). `key` is used by Disagreement only (its per-member sample masks).
+All of them see the same inputs: the intrinsic state (`intrinsic_state`: the observation part by default) of the
+sampled batch after HER relabelling, its action and next state. Their raw values go through the same percentile
+normaliser into [intrinsic_reward_low, intrinsic_reward_high] and are mixed with weight intrinsic_alpha. `key` is
+the reward's own (Disagreement's sample masks), so SAC's keys are the same with or without intrinsic models.
+
+Adding a reward: a module with the class, and one line in `_REGISTRY` (or `register(name, cls)` at run time).
+This module imports no JAX, so the config validates `intrinsic` against the registry (`names`) cheaply; a
+reward's module is imported when it is first built (`get`).
 """
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
-import jax
-import jax.numpy as jnp
+__all__ = ["GENERIC_METRICS", "IntrinsicReward", "Raw", "Sizes", "get", "names", "register"]
 
-__all__ = ["Moments", "Raw", "Sizes", "moments_init", "moments_update", "standardise"]
-
-
-@dataclass(frozen=True)
-class Sizes:
-    """What every intrinsic reward's models are built from (`mcrl.algo.sac.Agent.intrinsic_net`)."""
-
-    state_dim: int
-    action_dim: int
-    width: int = 256  # hidden layers (the widest of mc_hidden_sizes)
-    init_scheme: str = "torch"
-    matmul_precision: str = "float32"
+# what a reward reports unless it names its own (`IntrinsicReward.metrics`): columns of metrics.csv
+GENERIC_METRICS = ("intrinsic_loss", "mean_raw_intrinsic")
 
 
 class Raw(NamedTuple):
     """One batch through an intrinsic reward's models (before the percentile normaliser)."""
 
-    raw: jax.Array  # (B,) raw reward of each transition
-    loss: jax.Array  # scalar: what the models minimise
-    grads: Any  # of `loss` with respect to the trained parameters
+    raw: Any  # (B,) raw reward of each transition
+    grads: Any  # of the models' loss with respect to the trained parameters
     untrained: Any  # the part no gradient trains, after this batch
+    metrics: dict  # the reward's own metrics of this batch, by name (its `metrics`)
+    history: Any = None  # the values this batch adds to the normaliser's history; None: `raw`
 
 
-class Moments(NamedTuple):
-    """Running mean and variance of states (per dimension), as `baselines`' RunningMeanStd keeps them."""
+@runtime_checkable
+class IntrinsicReward(Protocol):
+    """What `mcrl.algo.sac.Agent` needs of an intrinsic reward (see the module's docstring)."""
 
-    count: jax.Array  # float32 () states seen
-    mean: jax.Array  # (d,)
-    var: jax.Array  # (d,) population variance
+    metrics: ClassVar[tuple[str, ...]]  # the metrics.csv columns `step` fills (mcrl.algo.metrics.UPDATE_METRICS)
+    title: ClassVar[str]  # its name in a video's timeline, e.g. "MC", "RND"
+    raw_label: ClassVar[str]  # its raw value's row in a video's timeline, e.g. "raw KL (nats)"
 
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int) -> "IntrinsicReward": ...
 
-def moments_init(dim: int) -> Moments:
-    return Moments(jnp.float32(0), jnp.zeros(dim, jnp.float32), jnp.ones(dim, jnp.float32))
+    def init(self, key) -> tuple[Any, Any]: ...
 
+    def step(self, params, untrained, s, a, s_next, key) -> Raw: ...
 
-def moments_update(m: Moments, x: jax.Array) -> Moments:
-    """`m` with the rows of `x` (B, d) added (Chan et al.'s parallel update; the first batch sets them)."""
-    n = jnp.float32(x.shape[0])
-    b_mean, b_var = x.mean(0), x.var(0)
-    total = m.count + n
-    delta = b_mean - m.mean
-    mean = m.mean + delta * (n / total)
-    m2 = m.var * m.count + b_var * n + jnp.square(delta) * (m.count * n / total)
-    return Moments(total, mean, m2 / total)
+    def reward(self, params, untrained, s, a, s_next) -> Any: ...
 
 
-def standardise(m: Moments, x: jax.Array, clip: float | None = None) -> jax.Array:
-    """(x - mean) / std per dimension (a constant dimension stays at 0), clipped to [-clip, clip] if given."""
-    z = (x - m.mean) * jax.lax.rsqrt(jnp.maximum(m.var, 1e-8))
-    return z if clip is None else jnp.clip(z, -clip, clip)
+@dataclass(frozen=True)
+class Sizes:
+    """The sizes most rewards are built from: the intrinsic state's and action's dimensions, the width of every
+    hidden layer (the widest of `intrinsic_hidden_sizes`; each paper's own depth), initialisation and matmul
+    precision. A base class: it supplies `from_config` and the generic metrics."""
 
+    state_dim: int
+    action_dim: int
+    width: int = 256
+    init_scheme: str = "torch"
+    matmul_precision: str = "float32"
+
+    metrics: ClassVar[tuple[str, ...]] = GENERIC_METRICS
+    title: ClassVar[str] = "intrinsic"
+    raw_label: ClassVar[str] = "raw intrinsic reward"
+
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int):
+        return cls(state_dim, action_dim, max(cfg.intrinsic_hidden_sizes), cfg.init, cfg.matmul_precision)
+
+    @staticmethod
+    def generic_metrics(loss, raw) -> dict:
+        """`GENERIC_METRICS` of a batch: what the models minimise, and the raw reward's batch mean."""
+        return {"intrinsic_loss": loss, "mean_raw_intrinsic": raw.mean()}
+
+
+# `intrinsic` -> its class, as "module:attribute" (imported on first use) or the class itself
+_REGISTRY: dict[str, Any] = {
+    "mc": "mcrl.algo.mc:MC",  # the thesis' morphological computation
+    "rnd": "mcrl.algo.rnd:RND",
+    "icm": "mcrl.algo.icm:ICM",
+    "disagreement": "mcrl.algo.disagreement:Disagreement",
+}
+
+
+def register(name: str, reward: Any) -> None:
+    """Make `reward` (a class implementing `IntrinsicReward`, or "module:attribute" naming one) the value
+    `intrinsic=name` selects."""
+    _REGISTRY[name] = reward
+
+
+def names() -> tuple[str, ...]:
+    """The values `intrinsic` may take."""
+    return tuple(_REGISTRY)
+
+
+def get(name: str) -> type:
+    """The class registered as `name` (KeyError for an unknown name)."""
+    entry = _REGISTRY[name]
+    if isinstance(entry, str):
+        module, _, attr = entry.partition(":")
+        entry = getattr(importlib.import_module(module), attr)
+        _REGISTRY[name] = entry
+    return entry

@@ -4,21 +4,25 @@ MC of a transition is KL( p(s'|s,a) || p(s'|a) ): how much the current state (th
 the next state beyond what the action alone tells. Both models are diagonal Gaussians, so the KL is
 closed-form. The same forward pass gives the models' NLL loss and the KL, so the agent pays for it once.
 
-Everything here is a pure function of arrays, used by the agent (`mcrl.algo.sac`) and by `mcrl measure`,
-except `load_transitions`, which reads and checks `measure`'s data file.
+`MC` is the thesis' intrinsic reward behind the interface every intrinsic reward shares
+(`mcrl.algo.intrinsic.IntrinsicReward`), with its two reductions (`mc_reduction`): each transition its own KL
+(the thesis' text) or one batch-mean KL for the whole batch (the thesis' code). `measure` fits the same models to
+logged transitions offline (`mcrl measure`). Everything here is a pure function of arrays, except
+`load_transitions`, which reads and checks `measure`'s data file.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
+from mcrl.algo.intrinsic import Raw
 from mcrl.algo.networks import ActionModel, TransitionModel
 from mcrl.errors import MCRLError
 
@@ -90,6 +94,50 @@ def transition_kl(out: MCOutputs) -> jax.Array:
     kl = gaussian_kl(out.mu_t, out.log_std_t, out.mu_a, out.log_std_a).sum(-1)
     # A diverging model must not poison the reward with NaN/inf; KL is >= 0 analytically.
     return jnp.nan_to_num(jnp.maximum(kl, 0.0), nan=0.0, posinf=jnp.finfo(kl.dtype).max)
+
+
+@dataclass(frozen=True)
+class MC:
+    """MC as an intrinsic reward (`intrinsic=mc`): the raw reward of a transition is its KL in nats; the models
+    train on both NLLs; params {"transition", "action"}, nothing untrained. With `reduction="batch"` (the thesis'
+    code) every transition of a batch gets the batch-mean KL, and the batch adds that one value to the history."""
+
+    state_dim: int
+    action_dim: int
+    hidden: tuple[int, ...] = (256,) * 5
+    init_scheme: str = "torch"
+    matmul_precision: str = "float32"
+    reduction: str = "transition"  # transition (thesis text) | batch (thesis code)
+
+    metrics: ClassVar[tuple[str, ...]] = ("transition_model_loss", "action_model_loss", "mean_raw_kl")
+    title: ClassVar[str] = "MC"
+    raw_label: ClassVar[str] = "raw KL (nats)"
+
+    @classmethod
+    def from_config(cls, cfg, state_dim: int, action_dim: int) -> "MC":
+        return cls(state_dim, action_dim, tuple(cfg.intrinsic_hidden_sizes), cfg.init, cfg.matmul_precision,
+                   cfg.mc_reduction)
+
+    @property
+    def models(self) -> MCModels:
+        return MCModels(self.state_dim, self.hidden, self.init_scheme, self.matmul_precision)
+
+    def init(self, key):
+        return self.models.init(key, self.action_dim), {}
+
+    def step(self, params, untrained, s, a, s_next, key=None) -> Raw:
+        # one forward pass gives both models' loss and the KL
+        (_, (out, lt, la)), grads = jax.value_and_grad(self.models.loss, has_aux=True)(params, s, a, s_next)
+        kl = history = transition_kl(out)
+        if self.reduction == "batch":  # the thesis' code: one batch-mean value for every transition
+            kl = jnp.broadcast_to(kl.mean(), kl.shape)
+            history = kl[:1]  # one history value per step, as its code
+        return Raw(kl, grads, untrained,
+                   {"transition_model_loss": lt, "action_model_loss": la, "mean_raw_kl": kl.mean()}, history)
+
+    def reward(self, params, untrained, s, a, s_next):
+        """Each transition's own KL (the predictions need no s')."""
+        return transition_kl(self.models.forward(params, s, a))
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""Percentile normaliser of the raw MC (KL) values, at a cost per step that does not depend on history size.
+"""Percentile normaliser of the raw intrinsic rewards (MC: KL values), at a cost per step that does not depend on
+history size; every intrinsic reward's raw values go through it.
 
 The thesis maps each KL value into the task's reward range using percentiles of the history of past
 values: upper bound = `max_percentile`, lower bound = `min_percentile`, clamp, then linear. Its code kept
@@ -160,11 +161,12 @@ def scale(values, low_bound, high_bound, reward_low: float, reward_high: float):
     return reward_low + unit * (reward_high - reward_low)
 
 
-def mc_reward(state: NormaliserState, kl, min_percentile: float, max_percentile: float, reward_low: float,
-              reward_high: float):
-    """The MC reward of raw KL values under the history in `state`: (reward, (low bound, high bound))."""
+def reward(state: NormaliserState, raw, min_percentile: float, max_percentile: float, reward_low: float,
+           reward_high: float):
+    """The normalised reward of raw values (MC: KL) under the history in `state`: (reward, (low bound, high
+    bound))."""
     lo, hi = bounds(state, min_percentile, max_percentile)
-    return scale(kl, lo, hi, reward_low, reward_high), (lo, hi)
+    return scale(raw, lo, hi, reward_low, reward_high), (lo, hi)
 
 
 def reference_percentile(history: np.ndarray, q: float) -> float:

@@ -21,11 +21,13 @@ normaliser, shared by every intrinsic reward.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, Sizes, moments_init, moments_update, standardise
+from mcrl.algo.intrinsic import Raw, Sizes
+from mcrl.algo.moments import moments_init, moments_update, standardise
 from mcrl.algo.networks import Stack
 
 EMBEDDING = 512  # the paper's output size of both networks
@@ -36,6 +38,9 @@ CLIP = 5.0  # normalised inputs are clipped to [-5, 5]
 class RND(Sizes):
     """RND's networks for states of `state_dim` (`action_dim` unused: RND looks at the next state alone); params
     {"predictor"}, untrained {"target", "obs"}."""
+
+    title: ClassVar[str] = "RND"
+    raw_label: ClassVar[str] = "raw RND error"
 
     @property
     def target(self) -> Stack:
@@ -69,4 +74,4 @@ class RND(Sizes):
             return err.mean(), err
 
         (value, err), grads = jax.value_and_grad(loss, has_aux=True)(params)
-        return Raw(err, value, grads, untrained)
+        return Raw(err, grads, untrained, self.generic_metrics(value, err))

@@ -1,11 +1,11 @@
-"""SAC-MC: one gradient step as a pure function, jitted once.
+"""SAC with an intrinsic reward (SAC-MC by default): one gradient step as a pure function, jitted once.
 
 `Agent.update(state, batch) -> (state, metrics)` does, in one compiled call and in this order:
-  1. the intrinsic reward's models on the batch -> their losses and the raw reward of each transition (one pass):
-     MC's two models and the per-transition KL (`intrinsic=mc`, the default), or RND, ICM or Disagreement
-     (`mcrl.algo.intrinsic`);
+  1. the intrinsic reward's models on the batch -> the gradients of their loss and the raw reward of each
+     transition, in one pass (`intrinsic`: MC, the thesis' reward, by default; any of `mcrl.algo.intrinsic`'s
+     registry, all through the one interface `IntrinsicReward`);
   2. the raw values go into the percentile normaliser, then are mapped into the reward range;
-  3. reward = (1 - mc_alpha) * r_ext + mc_alpha * r_int (exactly r_ext when mc_alpha == 0);
+  3. reward = (1 - intrinsic_alpha) * r_ext + intrinsic_alpha * r_int (exactly r_ext when the weight is 0);
   4. critics (clipped double-Q target, polyak targets), actor, entropy coefficient — in the order of
      stable-baselines3 (entropy coefficient read before its own update);
   5. the intrinsic models' Adam step (so the reward used step t's models before their update, like the thesis).
@@ -13,7 +13,7 @@
 `metrics` are the step's numbers by name, which the training loop adds up on the device in the same compiled
 call (`mcrl.algo.diagnostics`) and reads only at log intervals.
 
-`update(state, batch, hyper)` with a `Hyper` takes mc_alpha, gamma, tau and the learning rates as data
+`update(state, batch, hyper)` with a `Hyper` takes intrinsic_alpha, gamma, tau and the learning rates as data
 instead of compile-time constants: `jax.vmap` of it trains a grid of runs as one computation
 (`mcrl.run.group`), compiled once for every alpha. Without `hyper` they are the config's constants.
 """
@@ -26,19 +26,17 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from mcrl.algo import intrinsic as intrinsic_rewards
 from mcrl.algo import normaliser
-from mcrl.algo.disagreement import Disagreement
-from mcrl.algo.icm import ICM
-from mcrl.algo.mc import MCModels, transition_kl
+from mcrl.algo.intrinsic import IntrinsicReward
 from mcrl.algo.networks import GaussianHead, TwinCritic
-from mcrl.algo.rnd import RND
 from mcrl.config import Config
 from mcrl.replay import Batch
 
-__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "MCStep", "SQUASH_CORRECTIONS",
+__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "SQUASH_CORRECTIONS",
            "TrainState", "saturation", "squash_log_det", "tanh_gaussian_sample"]
 
-INTRINSIC_MODELS = {"rnd": RND, "icm": ICM, "disagreement": Disagreement}  # `intrinsic` -> its models (not mc)
+INTRINSIC_KEY = 0x1A7  # folded into the step's key for the intrinsic reward's own randomness
 
 
 class Learned(NamedTuple):
@@ -49,63 +47,51 @@ class Learned(NamedTuple):
 
 
 class IntrinsicModels(NamedTuple):
-    """The models of an intrinsic reward other than MC (`mcrl.algo.intrinsic`)."""
+    """The models of the run's intrinsic reward, whichever it is (`mcrl.algo.intrinsic`)."""
 
-    params: Any  # trained by Adam at mc_lr
+    params: Any  # trained by Adam at intrinsic_lr
     opt: Any
-    untrained: Any  # what no gradient trains (RND's target network, running state statistics); {} for ICM
+    untrained: Any  # what no gradient trains (RND's target network, running state statistics); {} for MC, ICM
 
 
 class TrainState(NamedTuple):
-    """What learns. A checkpoint's state.npz keys each leaf by its path: `.pi.params['MLP_0']...`, `.pi.opt[0]...`."""
+    """What learns. A checkpoint's state.npz keys each leaf by its path: `.pi.params['MLP_0']...`, `.pi.opt[0]...`,
+    `.intrinsic.params[...]` (`.mc_models.params[...]` in checkpoints from before issue 52, read as these)."""
 
     pi: Learned  # the actor
     q: Learned  # the twin critics
     q_target: Any  # polyak-averaged critic parameters
     ent: Learned  # log of the entropy coefficient
-    mc_models: Learned | None  # transition and action-only models; None without MC models
+    intrinsic: IntrinsicModels | None  # the intrinsic reward's models; None without them (plain SAC)
     norm: Any  # normaliser.NormaliserState of the raw intrinsic rewards, None without intrinsic models
     key: jax.Array
     grad_steps: jax.Array
-    intrinsic: IntrinsicModels | None = None  # RND, ICM or Disagreement (`intrinsic`); None otherwise
 
 
 class Hyper(NamedTuple):
     """A run's scalar hyperparameters as data (per-run values of a vmapped group)."""
 
-    mc_alpha: Any
+    intrinsic_alpha: Any
     gamma: Any
     tau: Any
     learning_rate: Any
-    mc_lr: Any
+    intrinsic_lr: Any
 
     @classmethod
     def of(cls, cfg: Config) -> "Hyper":
-        return cls(cfg.mc_alpha, cfg.gamma, cfg.tau, cfg.learning_rate, cfg.mc_lr)
-
-
-class MCStep(NamedTuple):
-    """The MC part of one gradient step (`Agent.mc_reward`)."""
-
-    reward: jax.Array  # (B,) MC reward of each transition, in [mc_reward_low, mc_reward_high]
-    kl: jax.Array  # (B,) raw KL in nats (the batch mean everywhere with mc_reduction=batch)
-    norm: Any  # the normaliser's history with this step's values pushed
-    bounds: jax.Array  # (2,) the history's percentile bounds the reward was scaled with
-    grads: Any  # of both models' NLL
-    transition_loss: jax.Array
-    action_loss: jax.Array
+        return cls(cfg.intrinsic_alpha, cfg.gamma, cfg.tau, cfg.learning_rate, cfg.intrinsic_lr)
 
 
 class IntrinsicStep(NamedTuple):
-    """The intrinsic part of one gradient step with RND, ICM or Disagreement (`Agent.intrinsic_reward`)."""
+    """The intrinsic part of one gradient step (`Agent.intrinsic_reward`)."""
 
-    reward: jax.Array  # (B,) in [mc_reward_low, mc_reward_high]
-    raw: jax.Array  # (B,) raw reward before the normaliser
-    norm: Any
-    bounds: jax.Array
-    grads: Any
-    loss: jax.Array
+    reward: jax.Array  # (B,) normalised reward of each transition, in [intrinsic_reward_low, intrinsic_reward_high]
+    raw: jax.Array  # (B,) raw reward before the normaliser (MC: KL in nats)
+    norm: Any  # the normaliser's history with this step's values pushed
+    bounds: jax.Array  # (2,) the history's percentile bounds the reward was scaled with
+    grads: Any  # of the models' loss
     untrained: Any  # the models' untrained part after this batch
+    metrics: dict  # the reward's own metrics (its `metrics` names)
 
 
 SQUASH_CORRECTIONS = ("exact", "epsilon")
@@ -152,7 +138,7 @@ class Agent:
 
     obs_dim: int
     act_dim: int
-    mc_dim: int  # first mc_dim entries of obs are the MC state
+    intrinsic_dim: int  # first intrinsic_dim entries of obs are the state the intrinsic reward sees
     cfg: Config
 
     @property
@@ -164,16 +150,15 @@ class Agent:
         return TwinCritic(self.cfg.hidden_sizes, self.cfg.init, self.cfg.matmul_precision)
 
     @property
-    def mc_net(self) -> MCModels:
-        return MCModels(state_dim=self.mc_dim, hidden=self.cfg.mc_hidden_sizes, init_scheme=self.cfg.init,
-                        matmul_precision=self.cfg.matmul_precision)
+    def intrinsic_net(self) -> IntrinsicReward:
+        """The models of the config's `intrinsic` reward on the intrinsic state (whether this run trains them or
+        not: see `use_intrinsic_models`)."""
+        return intrinsic_rewards.get(self.cfg.intrinsic).from_config(self.cfg, self.intrinsic_dim, self.act_dim)
 
     @property
-    def intrinsic_net(self):
-        """The models of `intrinsic` (rnd | icm | disagreement) on the MC state, widths from `mc_hidden_sizes`."""
-        cfg = self.cfg
-        return INTRINSIC_MODELS[cfg.intrinsic](self.mc_dim, self.act_dim, max(cfg.mc_hidden_sizes), cfg.init,
-                                               cfg.matmul_precision)
+    def own_metrics(self) -> tuple[str, ...] | None:
+        """The metrics its intrinsic reward reports; None without intrinsic models (`mcrl.algo.metrics.reported`)."""
+        return self.intrinsic_net.metrics if self.cfg.use_intrinsic_models else None
 
     @property
     def target_entropy(self) -> float:
@@ -183,25 +168,21 @@ class Agent:
         return optax.adam(lr)
 
     def init(self, seed: int) -> TrainState:
-        # The SAC keys do not depend on whether MC models exist, so mc_alpha=0 reproduces SAC exactly.
-        k_actor, k_critic, k_mc, k_state = jax.random.split(jax.random.PRNGKey(seed), 4)
+        # The SAC keys do not depend on whether intrinsic models exist, so intrinsic_alpha=0 reproduces SAC exactly.
+        k_actor, k_critic, k_intrinsic, k_state = jax.random.split(jax.random.PRNGKey(seed), 4)
         obs, act = jnp.zeros((1, self.obs_dim)), jnp.zeros((1, self.act_dim))
         actor = self.actor_net.init(k_actor, obs)["params"]
         critic = self.critic_net.init(k_critic, obs, act)["params"]
         log_ent = jnp.log(jnp.float32(self.cfg.ent_coef_init))
-        mc_models = norm = intrinsic = None
-        if self.cfg.intrinsic_models == "mc":
-            mc = self.mc_net.init(k_mc, self.act_dim)
-            mc_models = Learned(mc, self._opt(self.cfg.mc_lr).init(mc))
-        elif self.cfg.intrinsic_models is not None:
-            params, untrained = self.intrinsic_net.init(k_mc)
-            intrinsic = IntrinsicModels(params, self._opt(self.cfg.mc_lr).init(params), untrained)
-        if self.cfg.use_mc_models:
-            norm = normaliser.init(self.cfg.mc_history_values)
+        intrinsic = norm = None
+        if self.cfg.use_intrinsic_models:
+            params, untrained = self.intrinsic_net.init(k_intrinsic)
+            intrinsic = IntrinsicModels(params, self._opt(self.cfg.intrinsic_lr).init(params), untrained)
+            norm = normaliser.init(self.cfg.intrinsic_history_values)
         lr = self.cfg.learning_rate
         return TrainState(pi=Learned(actor, self._opt(lr).init(actor)), q=Learned(critic, self._opt(lr).init(critic)),
                           q_target=jax.tree.map(jnp.copy, critic), ent=Learned(log_ent, self._opt(lr).init(log_ent)),
-                          mc_models=mc_models, norm=norm, key=k_state, grad_steps=jnp.int32(0), intrinsic=intrinsic)
+                          intrinsic=intrinsic, norm=norm, key=k_state, grad_steps=jnp.int32(0))
 
     # ------------------------------------------------------------------ acting
     def act(self, actor_params, obs, key):
@@ -211,38 +192,26 @@ class Agent:
     def act_deterministic(self, actor_params, obs):
         return jnp.tanh(self.actor_net.apply({"params": actor_params}, obs)[0])
 
-    # ------------------------------------------------------------------ the MC reward
-    def mc_reward(self, state: TrainState, batch: Batch) -> MCStep:
-        """MC losses/grads, raw KL, updated normaliser and the scaled MC reward of every transition."""
-        cfg = self.cfg
-        s, s_next = batch.obs[:, : self.mc_dim], batch.next_obs[:, : self.mc_dim]
-        (_, (out, lt, la)), grads = jax.value_and_grad(self.mc_net.loss, has_aux=True)(
-            state.mc_models.params, s, batch.action, s_next)
-        kl = transition_kl(out)
-        if cfg.mc_reduction == "batch":  # the thesis' code: one batch-mean value for every transition
-            kl = jnp.broadcast_to(kl.mean(), kl.shape)
-            r_mc, norm, bounds = self._scaled(state.norm, kl, kl[:1])  # one history value per step, as its code
-        else:
-            r_mc, norm, bounds = self._scaled(state.norm, kl, kl)
-        return MCStep(r_mc, kl, norm, bounds, grads, lt, la)
-
+    # ------------------------------------------------------------------ the intrinsic reward
     def intrinsic_reward(self, state: TrainState, batch: Batch) -> IntrinsicStep:
-        """RND, ICM or Disagreement on the batch: raw reward, losses/grads, untrained part, scaled reward."""
-        s, s_next = batch.obs[:, : self.mc_dim], batch.next_obs[:, : self.mc_dim]
+        """The intrinsic reward's models on the batch: raw reward, gradients, untrained part, metrics, and the
+        normalised reward of every transition (the normaliser's history pushed)."""
+        s, s_next = batch.obs[:, : self.intrinsic_dim], batch.next_obs[:, : self.intrinsic_dim]
         models = state.intrinsic
         # a key of its own (Disagreement's masks), so that SAC's keys are the same with or without these models
         out = self.intrinsic_net.step(models.params, models.untrained, s, batch.action, s_next,
-                                      jax.random.fold_in(state.key, 0x1A7))
-        reward, norm, bounds = self._scaled(state.norm, out.raw, out.raw)
-        return IntrinsicStep(reward, out.raw, norm, bounds, out.grads, out.loss, out.untrained)
+                                      jax.random.fold_in(state.key, INTRINSIC_KEY))
+        history = out.raw if out.history is None else out.history
+        reward, norm, bounds = self._scaled(state.norm, out.raw, history)
+        return IntrinsicStep(reward, out.raw, norm, bounds, out.grads, out.untrained, out.metrics)
 
     def _scaled(self, norm, raw, history_values):
         """The percentile normaliser, shared by every intrinsic reward: `history_values` pushed into its history,
-        then `raw` scaled into [mc_reward_low, mc_reward_high]. (reward, new history, (2,) bounds)."""
+        then `raw` scaled into [intrinsic_reward_low, intrinsic_reward_high]. (reward, new history, (2,) bounds)."""
         cfg = self.cfg
         norm = normaliser.push(norm, history_values)
-        reward, (lo, hi) = normaliser.mc_reward(norm, raw, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
-                                                cfg.mc_reward_high)
+        reward, (lo, hi) = normaliser.reward(norm, raw, cfg.min_percentile, cfg.max_percentile,
+                                             cfg.intrinsic_reward_low, cfg.intrinsic_reward_high)
         return reward, norm, jnp.stack([lo, hi])
 
     # ------------------------------------------------------------------ one gradient step
@@ -252,34 +221,27 @@ class Agent:
 
     def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None) -> tuple[TrainState, dict]:
         """One gradient step: the new state, and the step's metrics by name (`mcrl.algo.metrics`: those of the
-        run's intrinsic models and the normaliser's bounds, `mc_bound_low` / `mc_bound_high`, only with them)."""
+        run's intrinsic reward, the normalised reward and the normaliser's bounds only with intrinsic models)."""
         cfg = self.cfg
         h = Hyper.of(cfg) if hyper is None else hyper
         key, k_pi, k_next = jax.random.split(state.key, 3)
         m: dict[str, jax.Array] = {}
 
         reward = batch.reward
-        mc_models, norm, intrinsic = state.mc_models, state.norm, state.intrinsic
-        if cfg.use_mc_models:
-            if cfg.intrinsic == "mc":
-                step = self.mc_reward(state, batch)
-                m.update(transition_model_loss=step.transition_loss, action_model_loss=step.action_loss,
-                         mean_raw_kl=step.kl.mean())
-            else:
-                step = self.intrinsic_reward(state, batch)
-                m.update(intrinsic_loss=step.loss, mean_raw_intrinsic=step.raw.mean())
+        intrinsic, norm = state.intrinsic, state.norm
+        if cfg.use_intrinsic_models:
+            step = self.intrinsic_reward(state, batch)
+            m.update(step.metrics)
             if hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
-                reward = jnp.where(h.mc_alpha > 0, (1.0 - h.mc_alpha) * batch.reward + h.mc_alpha * step.reward,
-                                   reward)
-            elif cfg.mc_alpha > 0:
-                reward = (1.0 - cfg.mc_alpha) * batch.reward + cfg.mc_alpha * step.reward
-            if cfg.intrinsic == "mc":
-                mc_models = self._adam(state.mc_models, step.grads, h.mc_lr)
-            else:
-                learned = self._adam(Learned(intrinsic.params, intrinsic.opt), step.grads, h.mc_lr)
-                intrinsic = IntrinsicModels(learned.params, learned.opt, step.untrained)
+                reward = jnp.where(h.intrinsic_alpha > 0,
+                                   (1.0 - h.intrinsic_alpha) * batch.reward + h.intrinsic_alpha * step.reward, reward)
+            elif cfg.intrinsic_alpha > 0:
+                reward = (1.0 - cfg.intrinsic_alpha) * batch.reward + cfg.intrinsic_alpha * step.reward
+            learned = self._adam(Learned(intrinsic.params, intrinsic.opt), step.grads, h.intrinsic_lr)
+            intrinsic = IntrinsicModels(learned.params, learned.opt, step.untrained)
             norm = step.norm
-            m.update(mean_mc_reward=step.reward.mean(), mc_bound_low=step.bounds[0], mc_bound_high=step.bounds[1])
+            m.update(mean_intrinsic_reward=step.reward.mean(), intrinsic_bound_low=step.bounds[0],
+                     intrinsic_bound_high=step.bounds[1])
 
         ent_coef = jnp.exp(state.ent.params)
 
@@ -318,5 +280,5 @@ class Agent:
         m.update(actor_loss=actor_loss, critic_loss=critic_loss, ent_coef=ent_coef, ent_coef_loss=ent_loss,
                  q_mean=q_mean, mean_ext_reward=batch.reward.mean(), mean_total_reward=reward.mean(),
                  **saturation(jax.lax.stop_gradient(u_pi)))
-        return TrainState(pi=pi, q=q, q_target=q_target, ent=ent, mc_models=mc_models, norm=norm, key=key,
-                          grad_steps=state.grad_steps + 1, intrinsic=intrinsic), m
+        return TrainState(pi=pi, q=q, q_target=q_target, ent=ent, intrinsic=intrinsic, norm=norm, key=key,
+                          grad_steps=state.grad_steps + 1), m

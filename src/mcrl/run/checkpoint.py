@@ -1,10 +1,10 @@
 """Checkpoints: plain .npz arrays plus JSON, never pickle, written atomically.
 
 A checkpoint is a directory `checkpoints/step_<N>/` holding `state.npz` (every leaf of the learner's state
-and of its diagnostics, keyed by its pytree path: `flatten`), `normaliser.npz` (the MC normaliser's history,
-packed), `buffer.npz` (the replay buffer, optional) and `meta.json` (step counters, the host RNG state, the
-config). `install` is the one way a checkpoint comes into being, whoever wrote its files (a run, or the sweep
-driver receiving a remote run's): every file fsynced in a temporary directory, renamed into place, then
+and of its diagnostics, keyed by its pytree path: `flatten`), `normaliser.npz` (the intrinsic reward's
+normaliser's history, packed), `buffer.npz` (the replay buffer, optional) and `meta.json` (step counters, the host
+RNG state, the config). `install` is the one way a checkpoint comes into being, whoever wrote its files (a run, or
+the sweep driver receiving a remote run's): every file fsynced in a temporary directory, renamed into place, then
 `checkpoints/latest` replaced atomically and the oldest pruned. `find` falls back to the newest complete
 checkpoint when `latest` is missing or dangling, so a kill at any moment leaves an older checkpoint usable; a
 write that fails (a full disk) removes its temporary directory, freeing its space, and leaves `latest` as it was.
@@ -27,6 +27,10 @@ from mcrl.run import rundir
 
 _COMPLETE = ("state.npz", "meta.json")  # a checkpoint directory without these is not usable
 _OLD_FORMAT = (".actor", ".norm.")  # keys of checkpoints by mcrl 0.1 and commit 83e6d8d (flat layout)
+# state.npz keys renamed in issue 52 (old prefix -> new), read as the new ones: MC's models took the one slot of
+# every intrinsic reward, and the normalised reward's metric its generic name
+RENAMED_KEYS = ((".mc_models.", ".intrinsic."),
+                (".metric_sums['mean_mc_reward']", ".metric_sums['mean_intrinsic_reward']"))
 
 
 def flatten(tree) -> dict[str, np.ndarray]:
@@ -134,12 +138,20 @@ def load_meta(ckpt: Path) -> dict[str, Any]:
                         "is corrupt; delete it to fall back to an older one") from None
 
 
+def _renamed(key: str) -> str:
+    for old, new in RENAMED_KEYS:
+        if key.startswith(old):
+            return new + key[len(old):]
+    return key
+
+
 def restore_state(ckpt: Path, template, optional=None):
     """(template, optional) filled with the checkpoint's arrays, each a freshly initialised pytree of the run's
-    config: every leaf of `template` must be there; a leaf of `optional` that is not keeps its initial value."""
+    config: every leaf of `template` must be there; a leaf of `optional` that is not keeps its initial value. Keys
+    from before a rename (`RENAMED_KEYS`) are read under their new names."""
     import jax
 
-    arrays = _load_npz(ckpt / "state.npz")
+    arrays = {_renamed(k): v for k, v in _load_npz(ckpt / "state.npz").items()}
     if any(k.startswith(_OLD_FORMAT) for k in arrays):
         raise MCRLError(f"checkpoint {ckpt} was written by an older mcrl (0.1 or commit 83e6d8d): convert it with "
                         "`python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
@@ -154,7 +166,7 @@ def restore_state(ckpt: Path, template, optional=None):
                     new_leaves.append(leaf)
                     continue
                 raise MCRLError(f"checkpoint {ckpt} lacks {key}: it was written by a different config "
-                                "(e.g. with/without MC models); resume with the run's own config.json")
+                                "(e.g. with/without intrinsic models); resume with the run's own config.json")
             a = arrays.pop(key)
             if a.shape != np.shape(leaf) or a.dtype != np.asarray(leaf).dtype:
                 raise MCRLError(f"checkpoint {ckpt}: {key} has shape {a.shape} {a.dtype}, expected {np.shape(leaf)} "

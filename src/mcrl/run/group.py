@@ -4,12 +4,12 @@ Runs whose configs agree in everything but `PER_RUN_KEYS` have learner states of
 stacks them along a leading run axis. The loop is the single run's (`mcrl.run.trainer.run_loop`): every run
 acts, steps its own environment, stores its transition in its own replay buffer and samples its own batch (host
 side, with its own RNG, in the same order as alone), then one compiled call updates all of them. The per-run
-scalars (mc_alpha, gamma, tau, learning rates) are data (`sac.Hyper`), so a grid over alpha compiles once.
+scalars (intrinsic_alpha, gamma, tau, learning rates) are data (`sac.Hyper`), so a grid over alpha compiles once.
 
-SAC runs (mc_alpha = 0, no MC models) in a group with SAC-MC runs carry MC models as ballast so that the
-shapes agree: their reward is 1 * r + 0 * r_mc = r exactly, and the ballast never reaches their files (their
-checkpoints, metrics and config are a SAC run's; a resumed group re-draws it). The same holds for the models of
-another intrinsic reward (`intrinsic`: rnd, icm, disagreement), which all runs of a group share. Each run writes
+SAC runs (intrinsic_alpha = 0, no intrinsic models) in a group with SAC-MC runs carry the group's intrinsic
+models (MC's, or those of the group's `intrinsic`, which all its runs share) as ballast so that the shapes agree:
+their reward is 1 * r + 0 * r_int = r exactly, and the ballast never reaches their files (their checkpoints,
+metrics and config are a SAC run's; a resumed group re-draws it). Each run writes
 exactly what `mcrl train` writes, so `mcrl eval`, `render`, `report` and `--resume` see an ordinary run, and a run
 started in a group may finish alone.
 """
@@ -25,7 +25,7 @@ import numpy as np
 
 from mcrl.algo import diagnostics
 from mcrl.algo.diagnostics import Diagnostics
-from mcrl.algo.metrics import INTRINSIC_METRICS, MC_METRICS
+from mcrl.algo.metrics import INTRINSIC_METRICS
 from mcrl.algo.sac import Agent, Batch, Hyper, TrainState
 from mcrl.config import Config
 from mcrl.errors import MCRLError
@@ -34,12 +34,13 @@ from mcrl.run.member import Member
 from mcrl.run.trainer import VideoStep, train_runs
 
 # Config keys that may differ inside a group (per-run data or host-side only); all others must agree.
-PER_RUN_KEYS = ("seed", "mc_alpha", "mc_models", "learning_rate", "mc_lr", "gamma", "tau", "preset", "out_dir")
+PER_RUN_KEYS = ("seed", "intrinsic_alpha", "intrinsic_models", "learning_rate", "intrinsic_lr", "gamma", "tau",
+                "preset", "out_dir")
 
 
 def group_key(cfg: Config) -> str:
     """Runs with equal keys can train as one group."""
-    d = cfg.to_dict()
+    d = cfg.fields()
     for k in PER_RUN_KEYS:
         d.pop(k)
     return json.dumps(d, sort_keys=True, default=str)
@@ -66,11 +67,12 @@ class GroupLearner:
     """The learner of a group: the members' states and diagnostics stacked, one vmapped training step."""
 
     def __init__(self, members: list[Member], states: list[TrainState], diags: list[Diagnostics]):
-        self.own = [m.cfg.intrinsic_models for m in members]  # the kind of its own intrinsic models (not ballast)
+        self.own = [m.agent.own_metrics for m in members]  # metrics of its own intrinsic models (None: ballast)
         a = members[0].agent
-        self.cfg = dataclasses.replace(members[0].cfg, mc_alpha=0.0, mc_models=any(self.own))
-        self.agent = agent = Agent(a.obs_dim, a.act_dim, a.mc_dim, self.cfg)
-        states = [s if own or not self.cfg.use_mc_models else self._with_ballast(s, m.cfg.seed)
+        self.cfg = dataclasses.replace(members[0].cfg, intrinsic_alpha=0.0,
+                                       intrinsic_models=any(o is not None for o in self.own))
+        self.agent = agent = Agent(a.obs_dim, a.act_dim, a.intrinsic_dim, self.cfg)
+        states = [s if own is not None or not self.cfg.use_intrinsic_models else self._with_ballast(s, m.cfg.seed)
                   for s, m, own in zip(states, members, self.own)]
         self.state: TrainState = stack(states)
         self.diag: Diagnostics = stack(diags)
@@ -93,7 +95,7 @@ class GroupLearner:
     def _with_ballast(self, state: TrainState, seed: int) -> TrainState:
         """A SAC run's state with the intrinsic models and normaliser a fresh run of its seed would have."""
         fresh = self.agent.init(seed)
-        return state._replace(mc_models=fresh.mc_models, norm=fresh.norm, intrinsic=fresh.intrinsic)
+        return state._replace(intrinsic=fresh.intrinsic, norm=fresh.norm)
 
     def act(self, obs: np.ndarray, t: int) -> np.ndarray:
         return np.asarray(self._act(self.state.pi.params, obs, t))
@@ -120,10 +122,9 @@ class GroupLearner:
     def state_of(self, i: int) -> tuple[TrainState, Diagnostics]:
         """Run `i`'s own state and diagnostics (a SAC run's without the ballast and its metrics)."""
         s, d = take(self.state, i), take(self.diag, i)
-        if self.cfg.use_mc_models and not self.own[i]:
-            ballast = MC_METRICS + INTRINSIC_METRICS
-            sums = {k: (jnp.float32(0) if k in ballast else v) for k, v in d.metric_sums.items()}
-            s = s._replace(mc_models=None, norm=None, intrinsic=None)
+        if self.cfg.use_intrinsic_models and self.own[i] is None:
+            sums = {k: (jnp.float32(0) if k in INTRINSIC_METRICS else v) for k, v in d.metric_sums.items()}
+            s = s._replace(intrinsic=None, norm=None)
             d = Diagnostics(sums, d.metric_count, jnp.zeros(2, jnp.float32))
         return s, d
 
@@ -134,6 +135,7 @@ def train_group(cfgs: list[Config], run_dirs: list[Path | str], env_workers: int
     if not cfgs or len(cfgs) != len(run_dirs):
         raise MCRLError("a group needs one run directory per config")
     if len({group_key(c) for c in cfgs}) != 1:
-        raise MCRLError("these runs differ in more than seed, mc_alpha, mc_models, learning rates, gamma and tau: "
+        raise MCRLError("these runs differ in more than seed, intrinsic_alpha, intrinsic_models, learning rates, "
+                        "gamma and tau: "
                         "train them in separate groups (mcrl.run.group.plan_groups)")
     return train_runs(list(cfgs), [Path(d) for d in run_dirs], True, GroupLearner, env_workers, progress, video)

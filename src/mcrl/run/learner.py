@@ -48,7 +48,7 @@ class Learner:
             self.state, self.diag = self._step(self.state, self.diag, batch)
 
     def read_metrics(self) -> list[dict[str, float]]:
-        metrics, self.diag = diagnostics.read(self.diag, self.agent.cfg.intrinsic_models)
+        metrics, self.diag = diagnostics.read(self.diag, self.agent.own_metrics)
         return [metrics]
 
     def state_of(self, i: int) -> tuple[TrainState, Diagnostics]:

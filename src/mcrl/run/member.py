@@ -156,7 +156,7 @@ class Member:
 
 
 def default_run_dir(cfg: Config) -> Path:
-    name = cfg.preset or f"{cfg.env_id}-a{cfg.mc_alpha:g}"
+    name = cfg.preset or f"{cfg.env_id}-a{cfg.intrinsic_alpha:g}"
     return Path(cfg.out_dir) / f"{name}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 

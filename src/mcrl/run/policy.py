@@ -17,7 +17,7 @@ def build(cfg: Config):
     """(env, spec, agent, buffer) for `cfg`; checks the environment and spaces before anything is written."""
     env = make_env(cfg)
     spec = inspect(env, cfg)
-    agent = Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg)
+    agent = Agent(spec.obs_dim, spec.act_dim, spec.intrinsic_dim, cfg)
     her = spec.uses_her(cfg)
     buffer = ReplayBuffer(cfg.buffer_size, spec.obs_dim, spec.act_dim, her=her, observation_dim=spec.observation_dim,
                           goal_dim=spec.goal_dim, strategy=cfg.her_strategy, k=cfg.her_k,
@@ -32,7 +32,7 @@ def agent_for(cfg: Config) -> tuple[Agent, EnvSpec]:
         spec = inspect(env, cfg)
     finally:
         env.close()
-    return Agent(spec.obs_dim, spec.act_dim, spec.mc_dim, cfg), spec
+    return Agent(spec.obs_dim, spec.act_dim, spec.intrinsic_dim, cfg), spec
 
 
 def restore(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, dict]:
@@ -53,7 +53,7 @@ def restore_run(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, Diag
             raise MCRLError(f"checkpoint {ckpt} has no normaliser.npz: it is damaged; delete it to fall back to an "
                             "older one")
         try:
-            norm = normaliser.unpack(packed, cfg.mc_history_values)
+            norm = normaliser.unpack(packed, cfg.intrinsic_history_values)
         except (KeyError, ValueError) as e:
             raise MCRLError(f"checkpoint {ckpt}: its normaliser does not fit this config ({e}): resume with "
                             "the run's own config.json") from None

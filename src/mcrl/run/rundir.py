@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from mcrl.algo.metrics import MC_METRICS, UPDATE_METRICS  # noqa: F401  (re-exported: the metrics.csv columns)
+from mcrl.algo.metrics import BOUNDS, RENAMED_COLUMNS, UPDATE_METRICS
 from mcrl.config import Config
 from mcrl.errors import MCRLError
 
@@ -48,7 +48,7 @@ SMALL_FILES = (CONFIG, METRICS, EVAL, FINAL_EVAL, PEER, DONE)  # what an experim
 
 # metrics.csv: the loop's columns around the gradient step's metrics (mcrl.algo.metrics)
 METRIC_COLUMNS = ("step", "time_s", "steps_per_s", "episodes", "train_return", "train_success_rate",
-                  "train_goal_moved", "eval_success_rate", "eval_mean_return", *UPDATE_METRICS, "mc_bound_low", "mc_bound_high")
+                  "train_goal_moved", "eval_success_rate", "eval_mean_return", *UPDATE_METRICS, *BOUNDS)
 EVAL_COLUMNS = ("step", "success_rate", "mean_return", "episodes")
 TIMING_COLUMNS = ("time_s", "steps_per_s")  # wall-clock: the only columns that differ between identical runs
 LEARNING_COLUMNS = tuple(c for c in METRIC_COLUMNS if c not in TIMING_COLUMNS)
@@ -116,17 +116,30 @@ def _number(cell: str | None) -> float | None:
         return None
 
 
+def _both_names(row: dict) -> dict:
+    """`row` with each renamed column (`RENAMED_COLUMNS`) under its old and its new name, whichever the file has:
+    readers of older runs and of newer ones see the same keys."""
+    for old, new in RENAMED_COLUMNS.items():
+        if new in row:
+            row.setdefault(old, row[new])
+        elif old in row:
+            row[new] = row[old]
+    return row
+
+
 def read_rows(path: str | Path) -> list[dict[str, float | None]]:
-    """Rows of a run's CSV as dicts of floats (None for empty cells); [] for a missing file."""
+    """Rows of a run's CSV as dicts of floats (None for empty cells), a renamed column under both its names; []
+    for a missing file."""
     p = Path(path)
     if not p.is_file():
         return []
     with p.open(newline="") as f:
-        return [{k: _number(v) for k, v in r.items() if k is not None} for r in csv.DictReader(f)]
+        return [_both_names({k: _number(v) for k, v in r.items() if k is not None}) for r in csv.DictReader(f)]
 
 
 def read_columns(path: str | Path) -> dict[str, np.ndarray]:
-    """Columns of a run's CSV as float arrays, NaN for empty cells; {} for a missing or empty file."""
+    """Columns of a run's CSV as float arrays, NaN for empty cells, a renamed column under both its names; {} for
+    a missing or empty file."""
     rows = read_rows(path)
     p = Path(path)
     if not rows:
@@ -134,7 +147,7 @@ def read_columns(path: str | Path) -> dict[str, np.ndarray]:
             return {}
         with p.open(newline="") as f:
             header = next(csv.reader(f), None)
-        return {h.strip(): np.zeros(0) for h in header} if header else {}
+        return _both_names({h.strip(): np.zeros(0) for h in header}) if header else {}
     return {k.strip(): np.array([math.nan if r.get(k) is None else r[k] for r in rows], dtype=float)
             for k in rows[0]}
 
@@ -154,7 +167,8 @@ def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
     the file is replaced atomically, so a failure here leaves it as it was."""
     if not path.exists():
         return
-    rows = [r for r in _whole_rows(path) if _number(r.get("step")) is not None and _number(r["step"]) <= max_step]
+    rows = [{RENAMED_COLUMNS.get(k, k): v for k, v in r.items()}  # a run from before a rename: the new names
+            for r in _whole_rows(path) if _number(r.get("step")) is not None and _number(r["step"]) <= max_step]
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=columns)

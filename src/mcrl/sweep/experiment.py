@@ -17,7 +17,7 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-from mcrl.config import resolve_config
+from mcrl.config import canonical, resolve_config, stored
 from mcrl.errors import MCRLError
 from mcrl.run import stop
 from mcrl.sweep.driver import Driver, SweepResult
@@ -74,10 +74,13 @@ def merged_grid_and_set(old: dict | None, plan: SweepPlan) -> tuple[dict, dict]:
     ``grid`` lists every value each key took across the merged sweeps; a ``set`` key stays fixed only where both
     fix it to the same value, otherwise it joins the grid (a side that left it unset ran the preset's default).
     The ``runs`` list stays the record of each run's own overrides."""
-    new_grid, new_set = jsonable(plan.grid), jsonable(plan.fixed)
+    def as_stored(d: dict) -> dict:  # either key name in, the stored one out (mcrl.config.STORED_AS)
+        return jsonable(stored(canonical(dict(d))))
+
+    new_grid, new_set = as_stored(plan.grid), as_stored(plan.fixed)
     if old is None:
         return new_grid, new_set
-    old_grid, old_set = dict(old.get("grid") or {}), dict(old.get("set") or {})
+    old_grid, old_set = as_stored(old.get("grid") or {}), as_stored(old.get("set") or {})
     grid: dict[str, list] = {}
 
     def add(key: str, values: list) -> None:

@@ -16,14 +16,16 @@ from typing import Any
 
 import yaml
 
-from mcrl.config import Config, resolve_config
+from mcrl.config import RENAMED, Config, canonical, resolve_config, stored
 from mcrl.errors import MCRLError
 from mcrl.run.rundir import SWEEP_JSON
 
 SWEEP_FILE_KEYS = ("preset", "grid", "set", "seeds")
-# Short names in configuration labels and run names.
-_LABEL = {"mc_alpha": "alpha"}
-_NAME_PREFIX = {"mc_alpha": "a"}
+# Short names in configuration labels and run names. A renamed key keeps the name it had in labels and run names
+# (`a0.2-s3`, `alpha=0.2`, `mc_lr=0.001`), so a sweep given again into a committed experiment names its runs as
+# before and resumes them.
+_LABEL = {**{new: old for old, new in RENAMED.items()}, "intrinsic_alpha": "alpha"}
+_NAME_PREFIX = {"intrinsic_alpha": "a"}
 
 
 @dataclass
@@ -35,9 +37,9 @@ class RunPlan:
     config: Config
 
     def entry(self) -> dict[str, Any]:
-        """This run's line in sweep.json."""
+        """This run's line in sweep.json (its keys as files store them, `mcrl.config.STORED_AS`)."""
         return {"name": self.name, "config_key": self.config_key, "seed": self.seed,
-                "overrides": jsonable(self.overrides)}
+                "overrides": jsonable(stored(self.overrides))}
 
 
 @dataclass
@@ -118,11 +120,11 @@ def parse_seeds(value: Any) -> list[int]:
 def build_plan(preset: str | None, grid: dict[str, list], fixed: dict[str, Any] | None = None,
                source: str = "args") -> SweepPlan:
     """Expand the grid (seeds outermost, so a partial sweep has every configuration's first seeds) and
-    validate every point with ``resolve_config``."""
-    fixed = dict(fixed or {})
+    validate every point with ``resolve_config``. Old key names (`mcrl.config.RENAMED`) are read as the new ones."""
     if not isinstance(grid, dict) or not grid:
         raise MCRLError("the sweep's grid is empty: give at least one key with a list of values, e.g. "
-                        "grid: {mc_alpha: [0, 0.2]} or --alphas 0,0.2")
+                        "grid: {intrinsic_alpha: [0, 0.2]} or --alphas 0,0.2")
+    grid, fixed = canonical(grid), canonical(dict(fixed or {}))
     for k, vals in grid.items():
         if not isinstance(vals, list) or not vals:
             raise MCRLError(f"grid key {k!r} has {vals!r}: give a non-empty list of values, e.g. {k}: [a, b] "
@@ -155,7 +157,7 @@ def build_plan(preset: str | None, grid: dict[str, list], fixed: dict[str, Any] 
             key_parts = [f"{_LABEL.get(k, k)}={_fmt(getattr(cfg, k))}" for k in keys]
             config_key = ",".join(key_parts) or (preset or cfg.env_id)
             name_parts = [f"{_NAME_PREFIX[k]}{_fmt(getattr(cfg, k))}" if k in _NAME_PREFIX
-                          else f"{k}={_fmt(getattr(cfg, k))}" for k in keys]
+                          else f"{_LABEL.get(k, k)}={_fmt(getattr(cfg, k))}" for k in keys]
             name = safe_name("-".join(name_parts + [f"s{cfg.seed}"]))
             ident = cfg.to_json()
             if ident in seen_cfg:
@@ -178,7 +180,7 @@ def _preflight(runs: list[RunPlan]) -> None:
     checked = set()
     for r in runs:
         cfg = r.config
-        ident = json.dumps([cfg.env_id, cfg.env_kwargs, cfg.her, cfg.mc_state], sort_keys=True, default=str)
+        ident = json.dumps([cfg.env_id, cfg.env_kwargs, cfg.her, cfg.intrinsic_state], sort_keys=True, default=str)
         if ident in checked:
             continue
         checked.add(ident)
@@ -191,10 +193,10 @@ def _preflight(runs: list[RunPlan]) -> None:
 
 def plan_from_args(preset: str | None, alphas: str | None = None, seeds: Any = None,
                    fixed: dict[str, Any] | None = None) -> SweepPlan:
-    """``mcrl sweep --preset P --alphas 0,0.2 --seeds N``: a grid over mc_alpha and seeds."""
+    """``mcrl sweep --preset P --alphas 0,0.2 --seeds N``: a grid over intrinsic_alpha and seeds."""
     grid: dict[str, list] = {}
     if alphas is not None:
-        grid["mc_alpha"] = parse_alphas(alphas)
+        grid["intrinsic_alpha"] = parse_alphas(alphas)
     if seeds is not None:
         grid["seed"] = parse_seeds(seeds)
     if not grid:
@@ -216,7 +218,7 @@ def plan_from_file(path: str | Path, extra_fixed: dict[str, Any] | None = None) 
         raise MCRLError(f"sweep file {path} is not valid YAML{at}: fix its syntax") from None
     if not isinstance(doc, dict):
         raise MCRLError(f"sweep file {path} must be a YAML mapping with keys preset, grid, set "
-                        f"(e.g. grid: {{mc_alpha: [0, 0.2], seed: [0, 1]}})")
+                        f"(e.g. grid: {{intrinsic_alpha: [0, 0.2], seed: [0, 1]}})")
     unknown = sorted(set(doc) - set(SWEEP_FILE_KEYS))
     if unknown:
         raise MCRLError(f"sweep file {path}: unknown top-level key(s) {unknown}: use {', '.join(SWEEP_FILE_KEYS)} "
@@ -225,7 +227,7 @@ def plan_from_file(path: str | Path, extra_fixed: dict[str, Any] | None = None) 
     fixed = doc.get("set") or {}
     if not isinstance(grid, dict) or not isinstance(fixed, dict):
         raise MCRLError(f"sweep file {path}: grid and set must be mappings of config keys, "
-                        "e.g. grid: {mc_alpha: [0, 0.2]} and set: {total_steps: 10000}")
+                        "e.g. grid: {intrinsic_alpha: [0, 0.2]} and set: {total_steps: 10000}")
     grid = dict(grid)
     if doc.get("seeds") is not None:
         if "seed" in grid:

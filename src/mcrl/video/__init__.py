@@ -6,7 +6,7 @@ One module per step of making a video:
 - ``episode``   roll out a policy, collecting frames and per-step data (the package's only rollout)
 - ``timeline``  the panel drawn beneath each frame: one row per series, success band, cursor at step t
 - ``encode``    write frames as mp4 or gif (or GIF bytes for TensorBoard)
-- ``render``    videos of a saved run's policy with its MC reward timeline (`mcrl render`,
+- ``render``    videos of a saved run's policy with its intrinsic reward's timeline (`mcrl render`,
   ``--video-every``); the only module that knows about runs, checkpoints and the agent, so it imports
   JAX: import it as ``mcrl.video.render``, it is not re-exported here
 
@@ -16,8 +16,8 @@ Typical use (what ``mcrl render RUN_DIR`` does, see ``render``)::
     video.configure_headless_gl()          # before the first env.render(); best before `import mujoco`
     env = video.make_render_env("FetchReach-v4")
     ep = video.render_episode(env, policy_fn, seed=0)
-    # ... compute per-step KL / MC reward from ep["observations"], ep["actions"] ...
-    series = {"KL (raw)": kl, "MC reward (normalised)": r_mc, "extrinsic reward": ep["rewards"]}
+    # ... compute the per-step raw and normalised intrinsic reward from ep["observations"], ep["actions"] ...
+    series = {"raw KL (nats)": kl, "MC reward (normalised)": r_mc, "extrinsic reward": ep["rewards"]}
     frames = video.compose_episode(ep["frames"], series, ep["success"])
     video.write_video(frames, run_dir / "videos" / "episode.mp4", "mp4", fps=25)
 

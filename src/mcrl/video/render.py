@@ -1,10 +1,12 @@
-"""Videos of a saved policy with the MC timeline beneath the scene (`mcrl render`, `--video-every`).
+"""Videos of a saved policy with the intrinsic reward's timeline beneath the scene (`mcrl render`,
+`--video-every`).
 
-Each frame shows the scene and, under it, the episode's per-step raw KL, normalised MC reward,
-extrinsic reward and success, with a cursor at the current step. The KL is computed by the MC module
-(`mcrl.algo.mc`) from the recorded (s, a, s') of the very episode shown, with the run's own MC models, and
-mapped to the MC reward by `mcrl.algo.normaliser.mc_reward` with the run's own normaliser history, exactly
-as the agent's reward would have been.
+Each frame shows the scene and, under it, the episode's per-step raw intrinsic reward (MC: the KL in nats),
+the normalised intrinsic reward, the extrinsic reward and success, with a cursor at the current step; the rows
+are named after the reward the run used (`IntrinsicReward.title`, `.raw_label`). The raw values are computed by
+the run's own intrinsic models (`IntrinsicReward.reward`) from the recorded (s, a, s') of the very episode
+shown, and normalised by `mcrl.algo.normaliser.reward` with the run's own normaliser history, exactly as the
+agent's reward would have been. A run without intrinsic models (plain SAC) shows the extrinsic reward alone.
 
 This is the glue between a run (its config and checkpoint, `mcrl.run`) and the video pieces
 (`gl`, `episode`, `timeline`, `encode`).
@@ -18,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from mcrl.algo import normaliser
-from mcrl.algo.mc import transition_kl
 from mcrl.algo.sac import Agent, TrainState
 from mcrl.config import Config
 from mcrl.envs import episode_seed, flatten_obs, to_env_action
@@ -31,25 +32,28 @@ from mcrl.video.episode import render_episode
 from mcrl.video.gl import check_renderer, make_render_env
 from mcrl.video.timeline import compose_episode
 
-__all__ = ["mc_timeline", "record_episode", "record_training_video", "render_policy", "render_run"]
+__all__ = ["intrinsic_timeline", "record_episode", "record_training_video", "render_policy", "render_run"]
 
 _RENDER_STREAM = 2  # seed stream of rendered episodes (training uses 0, evaluation 1)
 FPS = 25.0
 
 
-def mc_timeline(cfg: Config, agent: Agent, state: TrainState, flat_obs: np.ndarray, actions: np.ndarray):
-    """Per-step raw KL and normalised MC reward of a trajectory: flat_obs (T+1, obs_dim), actions (T, act_dim).
-
-    (None, None) for a run without MC models. The history is not updated: the reward is the one the
-    agent would give these transitions now.
-    """
-    if state.mc_models is None:
-        return None, None
-    s = jnp.asarray(flat_obs[:-1, : agent.mc_dim])  # the KL needs the predictions only, not the observed s'
-    kl = transition_kl(agent.mc_net.forward(state.mc_models.params, s, jnp.asarray(actions)))
-    r_mc, _ = normaliser.mc_reward(state.norm, kl, cfg.min_percentile, cfg.max_percentile, cfg.mc_reward_low,
-                                   cfg.mc_reward_high)
-    return np.asarray(kl, np.float64), np.asarray(r_mc, np.float64)
+def intrinsic_timeline(cfg: Config, agent: Agent, state: TrainState, flat_obs: np.ndarray,
+                       actions: np.ndarray) -> dict[str, np.ndarray]:
+    """The timeline rows of the run's intrinsic reward along a trajectory, flat_obs (T+1, obs_dim) and actions
+    (T, act_dim): {its raw label: (T,) raw values, "<title> reward (normalised)": (T,)}, or {} for a run without
+    intrinsic models. The history is not updated: the reward is the one the agent would give these transitions
+    now."""
+    if state.intrinsic is None:
+        return {}
+    net, models = agent.intrinsic_net, state.intrinsic
+    s = jnp.asarray(flat_obs[:-1, : agent.intrinsic_dim])
+    s_next = jnp.asarray(flat_obs[1:, : agent.intrinsic_dim])
+    raw = net.reward(models.params, models.untrained, s, jnp.asarray(actions), s_next)
+    r_int, _ = normaliser.reward(state.norm, raw, cfg.min_percentile, cfg.max_percentile, cfg.intrinsic_reward_low,
+                                 cfg.intrinsic_reward_high)
+    return {net.raw_label: np.asarray(raw, np.float64),
+            f"{net.title} reward (normalised)": np.asarray(r_int, np.float64)}
 
 
 def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int, act=None) -> dict:
@@ -71,11 +75,7 @@ def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int,
     n = ep["length"] + 1
     flat = np.stack([flatten_obs({k: v[i] for k, v in obs.items()} if isinstance(obs, dict) else obs[i])
                      for i in range(n)])
-    kl, r_mc = mc_timeline(cfg, agent, state, flat, np.stack(policy_actions))
-    series = {}
-    if kl is not None:
-        series["raw KL (nats)"] = kl
-        series["MC reward (normalised)"] = r_mc
+    series = intrinsic_timeline(cfg, agent, state, flat, np.stack(policy_actions))
     series["extrinsic reward"] = ep["rewards"]
     ep["series"] = series
     ep["flat_obs"], ep["policy_actions"] = flat, np.stack(policy_actions)
