@@ -95,3 +95,21 @@ def test_end_episode_closes_a_partial_episode_so_the_next_one_starts_fresh():
     assert buf.can_sample() and list(buf.ep_last[:3]) == [2, 2, 2]
     buf.add(np.zeros(4), np.zeros(1), 0.0, np.zeros(4), False, True)
     assert buf.ep_first[3] == 3 and buf.ep_last[3] == 3
+
+
+def test_floor_rounding_relabels_as_many_rows_as_stable_baselines3():
+    # SB3's HerReplayBuffer relabels int(her_ratio * B) rows: 204 of 256 at k=4, where round() gives 205
+    from mcrl.config import Config
+    from mcrl.run.policy import build
+
+    counts = {}
+    for rounding in ("nearest", "floor"):
+        cfg = resolve_config("fetchreach-sac", {"her_rounding": rounding, "buffer_size": 1000})
+        env, _, _, buf = build(cfg)
+        env.close()
+        counts[rounding] = [int(buf.relabelled(b).sum()) for b in (256, 64, 5)]
+    assert counts == {"nearest": [205, 51, 4], "floor": [204, 51, 4]}
+    # a run written before the key existed resumes with the count it was trained with
+    d = Config().to_dict()
+    del d["her_rounding"]
+    assert Config.from_run_json(d).her_rounding == "nearest"

@@ -43,6 +43,8 @@ class Config:
     her: bool | None = None  # None = on for goal-conditioned Dict environments
     her_strategy: str = "future"  # future | final | episode
     her_k: int = 4  # sampled goals per real transition: relabel fraction k / (k + 1)
+    her_rounding: str = "nearest"  # relabelled rows of a batch: nearest round(B k/(k+1)) = 205 of 256 | floor: int(),
+    # 204 of 256, as stable-baselines3's HerReplayBuffer (the thesis' code's buffer)
     # --- the intrinsic reward (docs/intrinsic.md); renamed keys were mc_* before (`RENAMED`) ---
     intrinsic: str = "mc"  # the reward intrinsic_alpha mixes in: a name of mcrl.algo.intrinsic's registry
     intrinsic_alpha: float = 0.0  # its weight: (1 - a) r_ext + a r_int
@@ -131,7 +133,7 @@ class Config:
 
 
 # the value a key had in effect before it existed, for config.json files written then (`Config.from_run_json`)
-TRAINED_BEFORE_KEY: dict[str, Any] = {"squash_correction": "exact"}
+TRAINED_BEFORE_KEY: dict[str, Any] = {"squash_correction": "exact", "her_rounding": "nearest"}
 
 # Keys that serve every intrinsic reward but were named after MC, old name -> new name (issue 52). The old names
 # are read wherever a user or a file gives a key: --set, sweep files, resolve_config, config.json, sweep.json.
@@ -180,6 +182,7 @@ KEY_NOTES: dict[str, str] = {
     "intrinsic_reward_low": "the normalised intrinsic reward's range is [low, high] (was mc_reward_low)",
     "intrinsic_reward_high": "the normalised intrinsic reward's range is [low, high] (was mc_reward_high)",
     "mc_reduction": "MC only: transition (each transition's KL, thesis text) | batch (one batch-mean KL, its code)",
+    "her_rounding": "relabelled rows per batch: nearest round(B k/(k+1)) | floor int(B k/(k+1)), as SB3's buffer",
     "squash_correction": "tanh log-prob correction: exact log(1 - tanh(u)^2) | epsilon log(1 - a^2 + 1e-6) "
                          "(stable-baselines3 and the thesis' code; at most 13.8 nats per action entry)",
 }
@@ -303,6 +306,9 @@ def validate(cfg: Config) -> None:
             "give a range low < high")
     if cfg.her_strategy not in ("future", "final", "episode"):
         bad(f"her_strategy={cfg.her_strategy!r}: choose future, final or episode")
+    if cfg.her_rounding not in ("nearest", "floor"):
+        bad(f"her_rounding={cfg.her_rounding!r}: choose nearest (round(B k/(k+1))) or floor (int(), as "
+            "stable-baselines3)")
     if cfg.intrinsic_state not in ("observation", "full"):
         bad(f"intrinsic_state={cfg.intrinsic_state!r}: choose observation or full")
     if cfg.mc_reduction not in ("transition", "batch"):

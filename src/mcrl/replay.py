@@ -34,11 +34,13 @@ class Batch(NamedTuple):
 class ReplayBuffer:
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, *, her: bool = False,
                  observation_dim: int = 0, goal_dim: int = 0, strategy: str = "future", k: int = 4,
-                 compute_reward: Callable | None = None, compute_terminated: Callable | None = None):
+                 compute_reward: Callable | None = None, compute_terminated: Callable | None = None,
+                 rounding: str = "nearest"):
         self.capacity = capacity
         self.her = her
         self.od, self.gd = observation_dim, goal_dim
         self.strategy, self.k = strategy, k
+        self.rounding = rounding  # of the relabelled share: nearest (205 of 256 at k=4) | floor (SB3's int(): 204)
         self.compute_reward = compute_reward
         self.compute_terminated = compute_terminated  # (achieved, desired) -> (n,) float32
         self.obs = np.zeros((capacity, obs_dim), np.float32)
@@ -84,7 +86,8 @@ class ReplayBuffer:
 
     def relabelled(self, batch_size: int) -> np.ndarray:
         """(batch_size,) bool: the rows of a `sample` that HER relabelled (the first k/(k+1) of them)."""
-        n_her = int(round(batch_size * self.k / (self.k + 1))) if self.her else 0
+        share = batch_size * self.k / (self.k + 1)
+        n_her = (int(share) if self.rounding == "floor" else int(round(share))) if self.her else 0
         return np.arange(batch_size) < n_her
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:

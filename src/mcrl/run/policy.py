@@ -22,7 +22,7 @@ def build(cfg: Config):
     buffer = ReplayBuffer(cfg.buffer_size, spec.obs_dim, spec.act_dim, her=her, observation_dim=spec.observation_dim,
                           goal_dim=spec.goal_dim, strategy=cfg.her_strategy, k=cfg.her_k,
                           compute_reward=env.unwrapped.compute_reward if her else None,
-                          compute_terminated=goal_terminated_fn(env) if her else None)
+                          compute_terminated=goal_terminated_fn(env) if her else None, rounding=cfg.her_rounding)
     return env, spec, agent, buffer
 
 
