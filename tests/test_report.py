@@ -186,9 +186,13 @@ def test_errors_name_the_fix(tmp_path: Path, make: str) -> None:
 
 
 def test_thesis_numbers_and_matching() -> None:
-    assert thesis_experiment("fetchpush-sacmc") == "FetchPush"
-    assert thesis_experiment("AntMaze-dense") == "AntMaze"
+    # the table of the runs' environment family (mcrl.envs.FAMILIES), for presets named after it
+    assert thesis_experiment("fetchpush-sacmc", ["FetchPush-v4"]) == "FetchPush"
+    assert thesis_experiment("fetchpush-sac") == "FetchPush"  # no runs yet: the preset's own environment
+    assert thesis_experiment("AntMaze-dense", ["AntMaze_UMazeDense-v5"]) == "AntMaze"
     assert thesis_experiment("fetchreach-sac") is None
+    assert thesis_experiment("fetchpush-sac", ["FetchReach-v4"]) is None  # a thesis preset on another task
+    assert thesis_experiment("custom", ["FetchPush-v4"]) is None
     fp, am = THESIS_RESULTS["FetchPush"], THESIS_RESULTS["AntMaze"]
     assert (fp["total_steps"], fp["seeds"], am["total_steps"], am["seeds"]) == (150_000, 6, 400_000, 4)
     assert fp["by_alpha"][0.2] == {"success_mean": 0.75, "success_var": 0.2, "mean_reward": -23.0}

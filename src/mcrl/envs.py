@@ -13,6 +13,36 @@ GOAL_KEYS = ("observation", "achieved_goal", "desired_goal")
 _registered = False
 
 
+@dataclass(frozen=True)
+class EnvFamily:
+    """What mcrl knows about a family of environments without making one (so reports need no simulator)."""
+
+    name: str
+    prefix: str  # environment ids starting with it belong to the family (the longest matching prefix wins)
+    success_key: str  # the `info` key of its success flag
+    reward_max: float  # the largest per-step extrinsic reward: the critics' divergence bound (analysis.divergence)
+    act_dim: int  # its action dimension
+    example: str  # one registered id of it (tests check the facts above against it)
+    thesis_table: str | None = None  # the thesis table its runs are compared with (mcrl.analysis.thesis)
+
+
+# Fetch: sparse -1/0 (or dense -distance) reward, 4-d actions, `is_success`; the mazes: dense exp(-distance) or
+# sparse 0/1, `success`. A new family is one line here.
+FAMILIES: tuple[EnvFamily, ...] = (
+    EnvFamily("FetchPush", "FetchPush", "is_success", 0.0, 4, "FetchPush-v4", thesis_table="FetchPush"),
+    EnvFamily("Fetch", "Fetch", "is_success", 0.0, 4, "FetchReach-v4"),
+    EnvFamily("AntMaze", "AntMaze", "success", 1.0, 8, "AntMaze_UMazeDense-v5", thesis_table="AntMaze"),
+    EnvFamily("PointMaze", "PointMaze", "success", 1.0, 2, "PointMaze_UMaze-v3"),
+)
+SUCCESS_KEYS = tuple(dict.fromkeys(f.success_key for f in FAMILIES))  # read in this order from any env's info
+
+
+def family_of(env_id: str) -> EnvFamily | None:
+    """The family of an environment id, or None for an environment mcrl knows nothing particular about."""
+    fams = [f for f in FAMILIES if str(env_id).startswith(f.prefix)]
+    return max(fams, key=lambda f: len(f.prefix)) if fams else None
+
+
 def register_envs() -> None:
     """Register gymnasium-robotics' environments (once, quietly)."""
     global _registered
@@ -48,12 +78,19 @@ def make_env(cfg: Config, render_mode: str | None = None) -> gym.Env:
     register_envs()
     try:
         env = gym.make(cfg.env_id, render_mode=render_mode, **cfg.env_kwargs)
+    except (gym.error.DependencyNotInstalled, ImportError) as e:  # registered, but needs a package (or version)
+        raise MCRLError(f"environment {cfg.env_id!r} cannot be made here: {_one_line(e)}: install what it names, "
+                        "or pick another environment") from None
     except gym.error.Error as e:  # NameNotFound, VersionNotFound, ...
-        raise MCRLError(f"unknown environment {cfg.env_id!r} ({e}): give a registered gymnasium id, "
+        raise MCRLError(f"unknown environment {cfg.env_id!r} ({_one_line(e)}): give a registered gymnasium id, "
                         "e.g. FetchPush-v4 or AntMaze_UMazeDense-v5") from None
     except TypeError as e:
-        raise MCRLError(f"environment {cfg.env_id!r} rejected env_kwargs {cfg.env_kwargs}: {e}") from None
+        raise MCRLError(f"environment {cfg.env_id!r} rejected env_kwargs {cfg.env_kwargs}: {_one_line(e)}") from None
     return env
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
 
 
 def inspect(env: gym.Env, cfg: Config) -> EnvSpec:
@@ -68,6 +105,11 @@ def inspect(env: gym.Env, cfg: Config) -> EnvSpec:
         raise MCRLError(f"her=true but {cfg.env_id} has no observation/achieved_goal/desired_goal Dict "
                         "observation: set --set her=false")
     if goal_env:
+        nested = [k for k in GOAL_KEYS if not isinstance(space[k], gym.spaces.Box)]
+        if nested:
+            raise MCRLError(f"{cfg.env_id}'s {' and '.join(nested)} are {type(space[nested[0]]).__name__} spaces, "
+                            "not Boxes: mcrl's HER needs flat goal vectors; wrap the environment in a gymnasium "
+                            "ObservationWrapper that flattens them (gymnasium.spaces.flatten) and pass its id")
         od = int(np.prod(space["observation"].shape))
         gd = int(np.prod(space["desired_goal"].shape))
         obs_dim = od + 2 * gd
@@ -116,8 +158,8 @@ def goal_terminated_fn(env: gym.Env):
 
 
 def success_of(info: dict) -> float | None:
-    """Success flag the environment reports (`is_success` for Fetch, `success` for AntMaze), if any."""
-    for k in ("is_success", "success"):
+    """Success flag the environment reports (`is_success` for Fetch, `success` for the mazes: FAMILIES), if any."""
+    for k in SUCCESS_KEYS:
         if k in info:  # a numpy scalar or a 1-element array, depending on the environment
             return float(np.asarray(info[k], dtype=np.float64).reshape(-1)[0])
     return None

@@ -18,7 +18,7 @@ from mcrl.analysis.experiment import Experiment
 from mcrl.analysis.families import CODE_VARIANT, ClaimResult, ReportClaims
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT
-from mcrl.analysis.thesis import THESIS_RESULTS, thesis_experiment, thesis_gain
+from mcrl.analysis.thesis import THESIS_RESULTS, env_ids, thesis_experiment, thesis_gain
 from mcrl.analysis.verdicts import power_sentence, tests_sentence
 
 
@@ -115,7 +115,7 @@ def _claim_lines(exp: Experiment, claims: ReportClaims, claimed: float) -> list[
 
 def thesis_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
     """The comparison with the thesis' table and its claims, for presets that reproduce a thesis experiment."""
-    name = thesis_experiment(exp.preset)
+    name = thesis_experiment(exp.preset, env_ids(exp.runs))
     if name is None:
         return []
     t = THESIS_RESULTS[name]

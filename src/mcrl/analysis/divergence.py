@@ -32,16 +32,13 @@ from typing import Any
 import numpy as np
 
 from mcrl.analysis.hypothesis import clopper_pearson
-
-# (largest per-step reward before MC mixing, action dimension) of the environments whose reward is known, by env
-# id prefix. Fetch: sparse -1/0 (gymnasium-robotics' default reward_type), 4-d actions; AntMaze: dense
-# exp(-distance) <= 1 or sparse 0/1, 8-d actions. Read from a table so that a report needs no simulator.
-KNOWN_ENVS = {"Fetch": (0.0, 4), "AntMaze": (1.0, 8)}
-
+from mcrl.envs import family_of
 
 def _known(config: dict[str, Any]) -> tuple[float, int] | None:
-    env = str(config.get("env_id", ""))
-    return next((v for k, v in KNOWN_ENVS.items() if env.startswith(k)), None)
+    """(largest per-step extrinsic reward, action dimension) of the run's environment family (mcrl.envs.FAMILIES,
+    a table, so that a report needs no simulator), or None for an environment outside them."""
+    fam = family_of(str(config.get("env_id", "")))
+    return None if fam is None else (fam.reward_max, fam.act_dim)
 
 
 def reward_max(config: dict[str, Any]) -> float | None:
@@ -96,7 +93,7 @@ class CriticCheck:
 
 def check_critics(metrics: dict[str, np.ndarray], config: dict[str, Any]) -> CriticCheck | None:
     """Check a run's metrics.csv columns (``step``, ``q_mean``, ``ent_coef``) against the lagged bound; None when
-    the run has no such rows or its environment's reward bound is unknown (see :data:`KNOWN_ENVS`)."""
+    the run has no such rows or its environment's reward bound is unknown (not in mcrl.envs.FAMILIES)."""
     r_max, known = reward_max(config), _known(config)
     need = ("step", "q_mean", "ent_coef")
     if r_max is None or known is None or any(k not in metrics for k in need):

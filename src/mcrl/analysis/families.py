@@ -23,7 +23,7 @@ from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, ClaimTest, Verdict, claim
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.registry import ArmRuns, ArmSpec, FamilySpec, Registry
 from mcrl.analysis.stats import mean_difference_ci, probability_of_improvement
-from mcrl.analysis.thesis import THESIS_RESULTS, equivalence_margin, thesis_experiment, thesis_gain
+from mcrl.analysis.thesis import THESIS_RESULTS, equivalence_margin, env_ids, thesis_experiment, thesis_gain
 
 CODE_VARIANT = "the thesis' code's variant of SAC-MC alpha=0.2 (one batch-mean KL, the whole observation)"
 
@@ -101,7 +101,7 @@ class ReportClaims:
 
 def candidates(exp: Experiment) -> list[Candidate]:
     """The claims this report's arms imply (see the module docstring), each baseline's together."""
-    thesis = thesis_experiment(exp.preset)
+    thesis = thesis_experiment(exp.preset, env_ids(exp.runs))
     d, margin = thesis_gain(thesis), equivalence_margin(thesis)
     sac, mc = sac_and_mc(exp)
     others = other_intrinsic(exp)

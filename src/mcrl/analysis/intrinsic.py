@@ -24,12 +24,12 @@ from mcrl.analysis.experiment import Experiment
 from mcrl.analysis.families import ClaimResult, ReportClaims
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT
-from mcrl.analysis.thesis import thesis_experiment, thesis_gain
+from mcrl.analysis.thesis import env_ids, thesis_experiment, thesis_gain
 
 
 def effect_of_interest(exp: Experiment) -> float | None:
     """The thesis' gain of SAC-MC 0.2 over SAC on this task (FetchPush: +0.23); None for other tasks."""
-    return thesis_gain(thesis_experiment(exp.preset))
+    return thesis_gain(thesis_experiment(exp.preset, env_ids(exp.runs)))
 
 
 def _words(r: ClaimResult) -> str:

@@ -339,7 +339,7 @@ def _critic_section(exp: Experiment) -> list[Block]:
                 checks.setdefault(g.key, []).append((r, c))
     if not checks:
         return out + [Paragraph("Not computed: no finished run logs `q_mean` and `ent_coef` on an environment whose "
-                                "reward bound is known (mcrl.analysis.divergence.KNOWN_ENVS).")]
+                                "reward bound is known (mcrl.envs.FAMILIES).")]
     cfg = next(r.config for runs in checks.values() for r, _ in runs)
     lag = lag_steps(float(cfg.get("gamma", 0.99)), float(cfg.get("tau", 0.005)))
     rows = [[f"`{key}`", f"`{r.name}`", "yes" if c.left else "no", steps(c.first_outside) if c.left else "-",

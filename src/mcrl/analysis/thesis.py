@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 # Thesis chapter 4 (Tables 4.2-4.5; /work/shared/FACTS.md). "variance" is the thesis' "Variance of
@@ -51,14 +52,24 @@ THESIS_RESULTS: dict[str, dict[str, Any]] = {
                   "text); mcrl's dense UMaze is a public stand-in, so the task itself differs.",
     },
 }
-# Preset name prefix (lower case) -> THESIS_RESULTS key.
-THESIS_PRESET_PREFIXES: dict[str, str] = {"fetchpush": "FetchPush", "antmaze": "AntMaze"}
+def thesis_experiment(preset: str | None, env_ids: Iterable[str] = ()) -> str | None:
+    """The THESIS_RESULTS key an experiment is compared with: the thesis table of its environment family
+    (mcrl.envs.FAMILIES; the runs' `env_ids`, else the preset's own environment), for a preset named after that
+    table (fetchpush-*, antmaze-*); None for any other preset, or runs of several families or of none with a table."""
+    from mcrl.config import PRESETS
+    from mcrl.envs import family_of
+
+    envs = set(env_ids) or ({PRESETS[preset][1].get("env_id", "")} if preset in PRESETS else set())
+    fams = {family_of(e) for e in envs}
+    fam = fams.pop() if len(fams) == 1 else None
+    if fam is None or fam.thesis_table not in THESIS_RESULTS:
+        return None
+    return fam.thesis_table if str(preset or "").lower().startswith(fam.thesis_table.lower()) else None
 
 
-def thesis_experiment(preset: str) -> str | None:
-    """The THESIS_RESULTS key a preset reproduces, by name prefix; None if it matches none."""
-    p = preset.lower()
-    return next((v for k, v in THESIS_PRESET_PREFIXES.items() if p.startswith(k)), None)
+def env_ids(runs: Iterable[Any]) -> set[str]:
+    """The environments of runs (objects with a `config` dict), for `thesis_experiment`."""
+    return {str(r.config["env_id"]) for r in runs if "env_id" in r.config}
 
 
 def thesis_gain(name: str | None) -> float | None:
