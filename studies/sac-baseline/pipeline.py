@@ -64,7 +64,14 @@ def _moved(first_goal: np.ndarray, last_goal: np.ndarray) -> list[float]:
     return [float(x) for x in np.linalg.norm(last_goal - first_goal, axis=1) > GOAL_MOVED]
 
 
-def run_mcrl(cfg, act, out_dir: Path) -> dict:
+def _collected(rewards: np.ndarray, first_achieved: np.ndarray, first_desired: np.ndarray) -> dict:
+    """What collection alone decides: the buffer's mean reward (every stored transition, what real rows estimate)
+    and the share of episodes that start with the object already within 5 cm of the goal."""
+    start = np.linalg.norm(first_achieved - first_desired, axis=1) < 0.05
+    return {"buffer_reward": float(np.mean(rewards)), "start_within": float(start.mean())}
+
+
+def run_mcrl(cfg, act, out_dir: Path, sample: bool = True) -> dict:
     from mcrl.algo.diagnostics import init as diag_init
     from mcrl.run.trainer import train_runs
 
@@ -83,7 +90,7 @@ def run_mcrl(cfg, act, out_dir: Path) -> dict:
 
         def update(self, batches):
             (b,) = batches
-            if b is not None:
+            if b is not None and sample:
                 rec.append(_batch_record(np.asarray(b.reward), self.m.buffer.relabelled(len(b.reward))))
 
         def read_metrics(self):
@@ -97,10 +104,11 @@ def run_mcrl(cfg, act, out_dir: Path) -> dict:
     n, T = buf.total - buf.total % 50, 50
     od, gd = buf.od, buf.gd
     moved = _moved(buf.obs[:n:T, od:od + gd], buf.next_obs[T - 1:n:T, od:od + gd])
-    return {"batches": rec, "moved": moved, "relabelled_rows": int(buf.relabelled(cfg.batch_size).sum())}
+    return {"batches": rec, "moved": moved, "relabelled_rows": int(buf.relabelled(cfg.batch_size).sum()),
+            **_collected(buf.reward[:n], buf.obs[:n:T, od:od + gd], buf.obs[:n:T, od + gd:od + 2 * gd])}
 
 
-def run_sb3(cfg, act) -> dict:
+def run_sb3(cfg, act, sample: bool = True) -> dict:
     sys.path.insert(0, str(_benchmarks()))
     from _sb3 import build_model  # noqa: E402
     from stable_baselines3 import SAC
@@ -115,7 +123,7 @@ def run_sb3(cfg, act) -> dict:
             return act(flat, self.num_timesteps)[None].astype(np.float32), None
 
         def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-            for _ in range(gradient_steps):
+            for _ in range(gradient_steps if sample else 0):
                 b = self.replay_buffer.sample(batch_size)
                 r = b.rewards.numpy().ravel()
                 n_real = batch_size - int(self.replay_buffer.her_ratio * batch_size)  # SB3: real rows first
@@ -127,7 +135,9 @@ def run_sb3(cfg, act) -> dict:
     size = rb.buffer_size if rb.full else rb.pos
     n, T = size - size % 50, 50
     moved = _moved(rb.observations["achieved_goal"][:n:T, 0], rb.next_observations["achieved_goal"][T - 1:n:T, 0])
-    return {"batches": rec, "moved": moved, "relabelled_rows": int(rb.her_ratio * cfg.batch_size)}
+    return {"batches": rec, "moved": moved, "relabelled_rows": int(rb.her_ratio * cfg.batch_size),
+            **_collected(rb.rewards[:n, 0], rb.observations["achieved_goal"][:n:T, 0],
+                         rb.observations["desired_goal"][:n:T, 0])}
 
 
 def cmd_run(a) -> int:
@@ -138,14 +148,14 @@ def cmd_run(a) -> int:
                                            "checkpoint_every": 10 ** 9, "buffer_size": max(a.steps, 1000)})
     act, about = _policy(a.policy, a.seed)
     if a.system == "mcrl":
-        res = run_mcrl(cfg, act, a.out.with_suffix(".run"))
+        res = run_mcrl(cfg, act, a.out.with_suffix(".run"), not a.collect_only)
     else:
-        res = run_sb3(cfg, act)
-    b = np.asarray(res["batches"])
+        res = run_sb3(cfg, act, not a.collect_only)
+    b = np.asarray(res["batches"] or [[np.nan] * 3])
     # gradient step i follows env step learning_starts + 1 + i: one row per EVERY env steps, as metrics.csv's
     first = cfg.learning_starts + 1
     rows = [(end, *b[max(0, end - EVERY + 1 - first):end - first + 1].mean(0).tolist())
-            for end in range(EVERY, a.steps + 1, EVERY) if end >= first]
+            for end in range(EVERY, a.steps + 1, EVERY) if end >= first] if res["batches"] else []
     import mcrl
 
     res.update(system=a.system, seed=a.seed, steps=a.steps, learning_starts=cfg.learning_starts, batches=rows,
@@ -165,8 +175,11 @@ def cmd_table(a) -> int:
     runs = [json.loads(Path(f).read_text()) for f in a.files]
     by: dict[tuple[str, str], list[dict]] = {}
     for r in runs:
-        by.setdefault((r["policy"].split(" of ")[0], r["system"]), []).append(r)
-    cols = ("mean batch reward", "real rows", "relabelled rows", "episodes that moved the object")
+        kind = r["policy"].split(" of ")[0] + (", collection only" if not r["batches"] else "")
+        by.setdefault((kind, r["system"]), []).append(r)
+    cols = ("mean batch reward", "real rows", "relabelled rows", "episodes that moved the object",
+            "buffer's mean reward", "episodes starting within 5 cm")
+    extra = {3: "moved", 4: "buffer_reward", 5: "start_within"}
     print("| policy | quantity | mcrl (seeds) | SB3 (seeds) | mcrl - SB3 [95% CI] | rank-sum p (two-sided) |")
     print("|---|---|---|---|---|---|")
     for policy in sorted({p for p, _ in by}):
@@ -175,10 +188,14 @@ def cmd_table(a) -> int:
             continue
         for j, col in enumerate(cols):
             def per_run(rs):
-                if j == 3:
-                    return np.array([np.mean(r["moved"]) for r in rs])
-                return np.array([np.mean([row[j + 1] for row in r["batches"] if row[0] > a.start]) for r in rs])
+                if j in extra:
+                    return np.array([np.mean(r.get(extra[j], np.nan)) for r in rs])
+                return np.array([np.mean([row[j + 1] for row in r["batches"] if row[0] > a.start] or [np.nan])
+                                 for r in rs])
             x, y = per_run(m), per_run(s)
+            x, y = x[np.isfinite(x)], y[np.isfinite(y)]  # runs from before a quantity was recorded lack it
+            if x.size == 0 or y.size == 0:
+                continue
             est, lo, hi = mean_difference_ci(x, y)
             ci_s = f"[{lo:+.4f}, {hi:+.4f}]"
             print(f"| {policy} | {col} | {x.mean():.4f} ({len(x)}) | {y.mean():.4f} ({len(y)}) | {est:+.4f} {ci_s} "
@@ -195,6 +212,8 @@ def main(argv=None) -> int:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--steps", type=int, default=20_000)
     r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--collect-only", action="store_true",
+                   help="draw no replay batches: only what collection decides (buffer reward, starts, moves)")
     t = sub.add_parser("table")
     t.add_argument("files", nargs="+")
     t.add_argument("--from", dest="start", type=int, default=1000,
