@@ -2,10 +2,12 @@
 
     python benchmarks/xla_threads.py [--seconds 3] [--repeats 3] [--size 1024]
 
-Each variant runs in a fresh process (XLA reads its flags when jax loads): `default` (no limits), `flags` (the
-environment `mcrl.sweep.worker.thread_env(1)` gives a sweep's runs) and `pinned` (no flags, the process bound to
-one core with `os.sched_setaffinity` before jax loads). A ratio above 1 means more than one core's worth of work;
-beside other load every ratio shrinks, so compare the variants of one call. Prints the median of the repeats.
+Each variant runs in a fresh process (XLA reads its flags when jax loads): `default` (no limits), `flags` (XLA's
+thread flags, which `mcrl.sweep.worker.thread_env(1)` gave a sweep's runs before issue 52, with the thread pools'
+environment variables) and `pinned` (no flags, the process bound to one core with `os.sched_setaffinity` before
+jax loads, as a sweep's worker is since: `mcrl.sweep.worker.pin_cores`). A ratio above 1 means more than one
+core's worth of work; beside other load every ratio shrinks, so compare the variants of one call. Prints the median
+of the repeats. `sweep_threads.py` measures a sweep's workers themselves.
 """
 from __future__ import annotations
 
@@ -17,6 +19,8 @@ import subprocess
 import sys
 
 import _common  # noqa: F401  (puts src/ on sys.path where mcrl is not installed)
+
+FLAGS = ("--xla_cpu_multi_thread_eigen=false", "intra_op_parallelism_threads=1")  # what sweeps passed before
 
 _CHILD = r"""
 import json, os, sys, time
@@ -48,7 +52,7 @@ def main() -> None:
         sys.exit("xla_threads: this platform has no os.sched_setaffinity (Linux only)")
     from mcrl.sweep.worker import thread_env
 
-    limits = thread_env(1)
+    limits = {**thread_env(1), "XLA_FLAGS": " ".join(FLAGS)}
     base = {k: v for k, v in os.environ.items() if k not in limits}
     variants = {"default": (base, "0"), "flags": ({**base, **limits}, "0"), "pinned": (base, "1")}
     print(f"{_common.usable_cores()} usable cores; {a.size}x{a.size} float32 matmul, {a.seconds:g} s, "

@@ -472,3 +472,68 @@ def test_importing_the_sweep_package_imports_neither_jax_nor_ray():
             "print(sorted(m for m in ('jax', 'ray', 'mlflow', 'matplotlib') if m in sys.modules))")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and res.stdout.strip() == "[]", res.stdout + res.stderr
+
+
+def test_a_run_another_process_writes_is_reported_locked_not_failed(tmp_path, capsys):
+    """The driver checks each run's lock before it starts it: a run written elsewhere (here: locked by this
+    process, as `mcrl train --resume` would hold it) is reported "locked by pid N", not started and not failed."""
+    from mcrl.run import lock
+    from mcrl.sweep import plan_from_args
+
+    exp = tmp_path / "exp"
+    args = ["sweep", "--preset", "fetchreach-sacmc", "--alphas", "0.2", "--seeds", "1", "--steps", "100",
+            "--exp", str(exp), "--no-progress"]
+    (run,) = plan_from_args("fetchreach-sacmc", "0.2", 1, {"total_steps": 100}).runs
+    (exp / "runs").mkdir(parents=True)  # the sweep's directory as an earlier call left it
+    (exp / "sweep.json").write_text(json.dumps({"preset": "fetchreach-sacmc", "id": "x", "runs": [run.entry()]}))
+    with lock.acquire(exp / "runs" / run.name):
+        rc = main(args)
+    out, err = capsys.readouterr()
+    assert rc == 1, out + err
+    assert re.search(rf"locked a0.2-s0: locked by pid {os.getpid()} ", out), out
+    assert "FAILED" not in out and "failed" not in err and "locked by another process (a0.2-s0)" in err
+    assert not (exp / "runs" / "a0.2-s0" / "config.json").exists()  # never started
+
+
+def test_backend_choices_come_from_the_registry():
+    from mcrl.cli import build_parser
+    from mcrl.sweep import backend
+
+    sweep = next(a for a in build_parser()._subparsers._group_actions[0].choices["sweep"]._actions
+                 if a.dest == "backend")
+    assert tuple(sweep.choices) == backend.names() == ("local", "ray", "vmap")
+
+
+def test_threads_per_run_pins_each_worker_to_its_slots_cores(tmp_path, monkeypatch):
+    """`--threads-per-run N` binds each worker to N cores of its slot before jax loads (XLA sizes its pool by the
+    cores a process may use); without it a worker keeps every core."""
+    from mcrl.sweep.backend import Job, Settings
+    from mcrl.sweep.local import LocalBackend
+    from mcrl.sweep.plan import plan_from_args
+
+    mask = sorted(os.sched_getaffinity(0))
+    code = ("import os, sys; from mcrl.sweep.worker import pin_cores; pin_cores(int(sys.argv[1]), int(sys.argv[2])); "
+            "print(sorted(os.sched_getaffinity(0)), 'jax' in sys.modules)")
+    for threads, slot, expected in ((1, 0, mask[:1]), (1, 1, [mask[1 % len(mask)]]), (1, len(mask), mask[:1]),
+                                    (len(mask), 3, mask)):
+        out = subprocess.run([sys.executable, "-c", code, str(threads), str(slot)], capture_output=True, text=True,
+                             check=True).stdout.split(maxsplit=len(expected))
+        assert out[-1].strip() == "False" and json.loads(" ".join(out[:-1])) == expected
+
+    specs = []
+
+    class Spawned:  # records what a worker would be started with
+        def __init__(self, target, args, **kw):
+            specs.append(args[0])
+            self.pid = 100 + len(specs)
+
+        def start(self):
+            pass
+
+    runs = plan_from_args("fetchreach-sacmc", "0,0.2", 1, {"total_steps": 100}).runs
+    for pin in (True, False):
+        backend = LocalBackend(Settings(tmp_path, "id", 2, 1, {}, pin=pin))
+        monkeypatch.setattr(backend._ctx, "Process", Spawned)
+        assert all(re.fullmatch(r"pid \d+", backend.launch(Job([r]))) for r in runs)
+        assert [(s["pin"], s["threads"], s["slot"]) for s in specs[-2:]] == [(pin, 1, 0), (pin, 1, 1)]
+        backend._running.clear()

@@ -213,21 +213,24 @@ def test_vmap_bad_options(tmp_path, args, msg):
     assert not (tmp_path / "exp").exists()
 
 
-def test_vmap_backend_shares_runs_among_workers(tmp_path, monkeypatch):
+def test_vmap_backend_shares_runs_among_workers(tmp_path):
     """On a CPU the default is one group per worker (XLA runs a vmapped step on about one core); runs that
     resume from different steps never share a group."""
-    from mcrl.sweep import local
+    from mcrl.sweep.backend import Settings
+    from mcrl.sweep.local import VmapBackend
     from mcrl.sweep.plan import plan_from_args
 
     plan = plan_from_args("fetchreach-sacmc", alphas="0,0.2", seeds=3)
-    seen = []
-    monkeypatch.setattr(local, "run_jobs", lambda jobs, *a, **k: seen.append([[r.name for r in j] for j in jobs]))
-    local.run_vmap(plan.runs, tmp_path, "id", 2, {}, 0, None)
-    local.run_vmap(plan.runs, tmp_path, "id", 1, {}, 0, None, group_size=4)
+
+    def jobs(workers, group_size=None):
+        backend = VmapBackend(Settings(tmp_path, "id", workers, 1, {}, group_size=group_size))
+        return [[r.name for r in j] for j in backend.jobs(plan.runs)]
+
+    seen = [jobs(2), jobs(1, group_size=4)]
     ck = tmp_path / "runs" / "a0.2-s1" / "checkpoints"
     (ck / "step_100").mkdir(parents=True)
     (ck / "latest").write_text("step_100\n")
-    local.run_vmap(plan.runs, tmp_path, "id", 1, {}, 0, None)
+    seen.append(jobs(1))
     assert seen[0] == [["a0-s0", "a0.2-s0", "a0-s1"], ["a0.2-s1", "a0-s2", "a0.2-s2"]]
     assert seen[1] == [["a0-s0", "a0.2-s0", "a0-s1", "a0.2-s1"], ["a0-s2", "a0.2-s2"]]
     assert seen[2] == [["a0-s0", "a0.2-s0", "a0-s1", "a0-s2", "a0.2-s2"], ["a0.2-s1"]]

@@ -191,13 +191,16 @@ def cmd_sweep(args) -> int:
     if res.failed:
         print(f"mcrl: {len(res.failed)} run(s) failed ({', '.join(res.failed)}): fix the cause and re-run "
               f"`mcrl sweep --exp {res.exp_dir}` to resume them", file=sys.stderr)
+    if res.locked:
+        print(f"mcrl: {len(res.locked)} run(s) locked by another process ({', '.join(res.locked)}): re-run "
+              f"`mcrl sweep --exp {res.exp_dir}` once it has ended", file=sys.stderr)
     if res.stopped_by is not None or res.stopped:
         why = f"stopped by {signal.Signals(res.stopped_by).name}" if res.stopped_by is not None else "stopped"
         print(f"mcrl: sweep {why}: {len(res.stopped)} run(s) saved at their episode's end; "
               f"`mcrl sweep --exp {res.exp_dir}` resumes them exactly", file=sys.stderr)
     if res.stopped_by is not None:
         return 128 + res.stopped_by
-    return 1 if res.failed or res.stopped else 0
+    return 1 if res.failed or res.stopped or res.locked else 0
 
 
 def cmd_render(args) -> int:
@@ -211,6 +214,8 @@ def cmd_render(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mcrl.sweep import backend as sweep_backends  # the registry only: imports neither jax nor ray
+
     parser = argparse.ArgumentParser(prog="mcrl", description="SAC-MC: reinforcement learning with morphological "
                                      "computation as an intrinsic reward")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -278,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="fixed override of a config key (repeatable)")
     p.add_argument("--file", help="YAML sweep file: preset, grid: {key: [values]}, optional set: {key: value}, seeds")
     p.add_argument("--exp", type=Path, help="experiment directory (default experiments/<preset>-<time>)")
-    p.add_argument("--backend", choices=("local", "ray", "vmap"), default="local",
+    p.add_argument("--backend", choices=sweep_backends.names(), default="local",
                    help="local: a process per run; ray: a Ray task per run; vmap: runs that share shapes train as "
                    "one vmapped computation (one process per group, all cores; the fastest on a GPU)")
     p.add_argument("--group-size", type=int, help="vmap: at most N runs per group (default: all that fit together)")
@@ -286,7 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(default 0: in the group's process)")
     p.add_argument("--workers", type=int, help="runs at a time (default: the number of cores; ray with --address: "
                    "as many as the cluster's CPUs allow)")
-    p.add_argument("--threads-per-run", type=int, help="threads of each run (default: cores // workers)")
+    p.add_argument("--threads-per-run", type=int, help="pin each run's process to N cores (default: not pinned, "
+                   "every core as `mcrl train`; the cores also set XLA's float results, docs/algorithm.md)")
     p.add_argument("--address", help="Ray cluster address (HOST:PORT, ray://HOST:PORT or auto); default: a local "
                    "Ray instance")
     p.add_argument("--gpus-per-run", type=float, default=0.0, help="GPUs each Ray task asks for (ray only)")

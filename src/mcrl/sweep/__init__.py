@@ -15,14 +15,17 @@ Python API::
     result = sweep.run_sweep(plan, "experiments/alpha", backend="local", workers=2)
 
 The package, one idea per module (each imports only those above it; none imports jax or ray at import
-time, since a local worker must set its thread limits before jax is imported):
+time, since a local worker must pin its cores before jax is imported):
 
 - ``plan``: grid / arguments / YAML file / ``sweep.json`` -> a ``SweepPlan``, a list of ``RunPlan``.
 - ``files``: a run directory seen from the driver: its state, and its files shipped between worker
   and driver (file names and formats are ``mcrl.run.rundir``'s).
-- ``worker``: inside a worker process: thread limits (``thread_env``), training one run, dying with
-  the driver.
-- ``driver``: the driver's progress lines and bar, and the ``SweepResult``.
+- ``worker``: inside a worker process: its cores (``pin_cores``) and thread limits (``thread_env``), training
+  its runs, dying with the driver.
+- ``backend``: the interface every backend implements (launch, poll, request stop) and their registry
+  (``--backend``).
+- ``driver``: the one driver loop (queue, retries, stop forwarding, locked runs, progress), its output and the
+  ``SweepResult``.
 - ``local``: the local backend, one spawned process per run; and the vmap backend, one spawned process per
   group of runs trained as one vmapped computation (``mcrl.run.group``).
 - ``ray_backend``: the Ray backend, one Ray task per run, shipping files back when the worker cannot

@@ -1,21 +1,31 @@
-"""The driver's bookkeeping, shared by both backends: what it prints, and the result it returns.
+"""The sweep's driver, one for every backend: the loop that runs the jobs (`drive`), what it prints, and the
+result it returns.
 
-One line per run event (``[3/8] start NAME (pid ...)``, ``finished``, ``FAILED``, ``stopped``, ``skip``) and
-an overall progress bar over all runs' steps (``mcrl.progress``: a plain line every few percent in a pipe or a
-file); the bar follows running runs through their metrics.csv. The backends report each run's end here
-(``finished`` / ``failed`` / ``stopped``), which fills the ``SweepResult``.
+`drive` owns the queue (at most `backend.slots` jobs at a time), retries of a job whose worker died (from its
+runs' last checkpoints), the stop request (the first SIGINT/SIGTERM: no more jobs, the running runs save and
+stop; a second one: killed at once), runs that another process writes (reported as "locked by pid N", never
+started), and progress. The backend (`mcrl.sweep.backend.Backend`) only launches jobs and reports their ends.
+
+One line per run event (``[3/8] start NAME (pid ...)``, ``finished``, ``FAILED``, ``stopped``, ``skip``,
+``locked``) and an overall progress bar over all runs' steps (``mcrl.progress``: a plain line every few percent in
+a pipe or a file); the bar follows running runs through their metrics.csv. Each run's end fills the
+``SweepResult``.
 """
 from __future__ import annotations
 
 import math
+import signal
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from mcrl.progress import Progress, duration
-from mcrl.sweep.files import last_logged_step, run_dir
+from mcrl.run import lock, stop
+from mcrl.sweep.backend import Backend, Ended, Job, Started
+from mcrl.sweep.files import last_logged_step, run_dir, run_status
 from mcrl.sweep.plan import RunPlan
 
 ERROR_LOG = "sweep-error.log"  # EXP/runs/<name>/sweep-error.log: the traceback of a run that failed
@@ -28,6 +38,7 @@ class SweepResult:
     skipped: list[str] = field(default_factory=list)  # already finished before
     failed: dict[str, str] = field(default_factory=dict)
     stopped: dict[str, int | None] = field(default_factory=dict)  # stopped by a signal: its checkpoint's step
+    locked: dict[str, str] = field(default_factory=dict)  # written by another process: who ("pid 123 (...)")
     stopped_by: int | None = None  # the signal that stopped this sweep call (SIGINT, SIGTERM)
     tracking_uri: str | None = None
     tracking_experiment: str | None = None
@@ -113,6 +124,11 @@ class Driver:
         where = f"at step {step:,}, checkpoint saved" if step is not None else "before it started"
         self.line(f"{self.tag()} stopped {name} {where}")
 
+    def locked(self, name: str, holder: str) -> None:
+        """Run `name` is written by another process (`holder`): not started, not failed."""
+        self.result.locked[name] = holder
+        self.line(f"{self.tag()} locked {name}: locked by {holder}; not started (run the sweep again once it ends)")
+
     def failed(self, name: str, why: str, traceback: str | None = None) -> None:
         """Run `name` failed; its traceback (if any) goes to its sweep-error.log. The other runs go on."""
         if traceback:
@@ -129,3 +145,105 @@ def summary_text(summary: dict) -> str:
     sr_s = "n/a" if sr is None else f"{sr:.2f}"
     ret_s = "n/a" if ret is None or not math.isfinite(ret) else f"{ret:.2f}"
     return f"success {sr_s}, return {ret_s}"
+
+
+# ------------------------------------------------------------------------------------------------ the loop
+def drive(backend: Backend, todo: list[RunPlan], drv: Driver, retries: int) -> None:
+    """Train `todo` on `backend`, reporting each run's end to `drv` (see the module's docstring)."""
+    queue = deque(Job(runs) for runs in backend.jobs(todo))
+    running: dict[int, tuple[Job, float]] = {}  # job id -> (job, monotonic start)
+    stopping = False
+    try:
+        while queue or running:
+            if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
+                stopping = True
+                queue.clear()
+                drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
+                         "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
+                backend.request_stop()
+                if not running:
+                    break
+            while queue and len(running) < backend.slots:
+                job = _without_locked(queue.popleft(), drv)
+                if job is not None:
+                    running[job.id] = (job, time.monotonic())
+                    _launched(job, backend.launch(job), drv)
+            for event in backend.poll(1.0):
+                if event.job.id not in running:
+                    continue
+                if isinstance(event, Started):
+                    _started(event.job, event.where, drv)
+                    continue
+                job, t0 = running.pop(event.job.id)
+                retry = _ended(event, t0, drv, retries if not stopping else 0)
+                if retry is not None:
+                    queue.appendleft(retry)
+            drv.poll([r.name for job, _ in running.values() for r in job.runs])
+    except KeyboardInterrupt:  # a second signal: the workers end at once (each run keeps its last checkpoint)
+        backend.close(kill=True)
+        raise
+    finally:
+        backend.close()
+
+
+def _without_locked(job: Job, drv: Driver) -> Job | None:
+    """`job` without the runs another process writes (each reported), None if none is left."""
+    free = []
+    for r in job.runs:
+        try:
+            lock.check_free(run_dir(drv.exp, r.name))
+            free.append(r)
+        except lock.Locked as e:
+            drv.locked(r.name, e.holder)
+    return None if not free else job if len(free) == len(job.runs) else Job(free, job.attempt, job.id)
+
+
+def _how(r: RunPlan, drv: Driver) -> str:
+    state, step = run_status(run_dir(drv.exp, r.name))
+    drv.set_steps(r.name, step)
+    return f"resume {r.name} from step {step}" if state == "checkpoint" else f"start {r.name}"
+
+
+def _launched(job: Job, where: str | None, drv: Driver) -> None:
+    if where is None:  # it says where when it starts (`_started`)
+        for r in job.runs:
+            state, step = run_status(run_dir(drv.exp, r.name))
+            drv.set_steps(r.name, step)
+            drv.line(f"{drv.tag()} queued {r.name}" + (f" (resumes from step {step})" if state == "checkpoint" else ""))
+    elif len(job.runs) == 1:
+        drv.line(f"{drv.tag()} {_how(job.runs[0], drv)} ({where})")
+    else:
+        drv.line(f"{drv.tag()} group of {len(job.runs)} as one computation ({where}): "
+                 f"{'; '.join(_how(r, drv) for r in job.runs)}")
+
+
+def _started(job: Job, where: str, drv: Driver) -> None:
+    for r in job.runs:
+        drv.line(f"{drv.tag()} start {r.name} ({where})")
+
+
+def _ended(e: Ended, t0: float, drv: Driver, retries: int) -> Job | None:
+    """Report the end of a job; the job to start again if its worker died and retries are left."""
+    runs = e.job.runs
+    if e.status == "ok":
+        for r in runs:
+            drv.done(r, t0, e.results[r.name])
+    elif e.status == "stopped":
+        for r in runs:
+            drv.stopped(r.name, e.results.get(r.name))
+    elif e.status == "locked":
+        for r in runs:
+            if r.name in e.results:
+                drv.locked(r.name, e.holder)
+            else:  # a group that could not start for one locked run: the others go back to the queue
+                drv.line(f"{drv.tag()} {r.name}: not started (its group had a locked run)")
+        rest = [r for r in runs if r.name not in e.results]
+        return Job(rest, e.job.attempt) if rest else None
+    elif e.status == "died" and e.job.attempt < retries:
+        drv.line(f"{drv.tag()} {e.job.label}: {e.why}; retrying from its last checkpoint "
+                 f"({e.job.attempt + 1} of {retries})")
+        return e.job.again()
+    else:
+        for r in runs:
+            drv.failed(r.name, e.why, e.traceback)
+    return None

@@ -1,15 +1,14 @@
 """``run_sweep``: run a ``SweepPlan`` into one experiment directory ``EXP``.
 
-In order: validate every setting (backend, counts, ``EXP`` against a sweep already in it, the Ray
-address, the tracking URI) while nothing is written; then lock ``EXP``, write ``EXP/sweep.json`` (the
-union of the runs there and the plan's), skip finished runs and hand the others to a backend
-(``local.run_local``, ``local.run_vmap`` or ``ray_backend.run_ray``). Runs that finish are logged to MLflow in
-a background thread (``tracking``), so the next runs start meanwhile. On SIGINT or SIGTERM the backend starts no
-more runs and lets the running ones save at their episode ends (``SweepResult.stopped_by``).
+In order: validate every setting (backend, counts, ``EXP`` against a sweep already in it, the backend's own
+check, e.g. the Ray address, the tracking URI) while nothing is written; start the backend (`mcrl.sweep.backend`);
+then lock ``EXP``, write ``EXP/sweep.json`` (the union of the runs there and the plan's), skip finished runs and
+hand the others to the driver loop (`mcrl.sweep.driver.drive`). Runs that finish are logged to MLflow in a
+background thread (``tracking``), so the next runs start meanwhile. On SIGINT or SIGTERM the driver starts no more
+runs and lets the running ones save at their episode ends (``SweepResult.stopped_by``).
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import time
@@ -19,13 +18,13 @@ from typing import Callable
 
 from mcrl.config import canonical, resolve_config, stored
 from mcrl.errors import MCRLError
+from mcrl.run import lock as locks
 from mcrl.run import stop
-from mcrl.sweep.driver import Driver, SweepResult
-from mcrl.sweep.files import RUNS, run_dir, run_status
-from mcrl.sweep.local import run_local, run_vmap
 from mcrl.run.rundir import SWEEP_JSON
+import mcrl.sweep.backend as backends
+from mcrl.sweep.driver import Driver, SweepResult, drive
+from mcrl.sweep.files import RUNS, run_dir, run_status
 from mcrl.sweep.plan import RunPlan, SweepPlan, jsonable, load_sweep_json, safe_name
-from mcrl.sweep.ray_backend import check_ray_address, import_ray, ray_auth_env, run_ray, start_ray
 from mcrl.sweep.worker import cpu_count, thread_env
 
 LOCK = ".sweep.lock"  # EXP/.sweep.lock: held by the one `mcrl sweep` running on EXP
@@ -116,29 +115,6 @@ def _write_sweep_json(exp: Path, doc: dict) -> None:
     os.replace(tmp, path)
 
 
-def _lock(exp: Path):
-    import fcntl
-
-    f = open(exp / LOCK, "a+")
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        f.close()
-        raise MCRLError(f"another `mcrl sweep` is running on {exp}: wait for it or stop it first") from None
-    f.seek(0)
-    f.truncate()
-    f.write(f"{os.getpid()}\n")
-    f.flush()
-    return f
-
-
-def _has_cuda_jax() -> bool:
-    """A CUDA build of jax is installed (the `cuda` extra); found without importing jax."""
-    import importlib.util
-
-    return any(importlib.util.find_spec(m) is not None for m in ("jax_cuda12_plugin", "jax_cuda13_plugin"))
-
-
 def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str = "local", workers: int | None = None,
               threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
               tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
@@ -146,14 +122,15 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
               env_workers: int = 0) -> SweepResult:
     """Run every unfinished run of `plan` into one experiment directory; see the package docstring.
 
+    `threads_per_run`: pin each run's process to that many cores (default: not pinned, every core, as
+    `mcrl train`; docs/performance.md, "A sweep's workers and their cores").
     Raises MCRLError (before writing anything) on bad settings; a run that fails is reported in the
     result (`failed`) while the others go on."""
     # ---- validate everything before EXP exists
-    if backend not in ("local", "ray", "vmap"):
-        raise MCRLError(f"--backend {backend!r}: choose local, ray or vmap")
+    if backend not in backends.names():
+        raise MCRLError(f"--backend {backend!r}: choose {', '.join(backends.names())}")
     if not plan.runs:
         raise MCRLError("the sweep has no runs (empty grid): give at least one value per grid key")
-    cores = cpu_count()
     if workers is not None and workers < 1:
         raise MCRLError(f"--workers {workers}: give at least 1")
     if threads_per_run is not None and threads_per_run < 1:
@@ -162,41 +139,35 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         raise MCRLError(f"--retries {retries}: give 0 or more")
     if gpus_per_run and gpus_per_run < 0:
         raise MCRLError(f"--gpus-per-run {gpus_per_run}: give 0 or more")
-    if backend != "ray" and (address or gpus_per_run):
-        raise MCRLError("--address and --gpus-per-run are for --backend ray: add --backend ray or drop them")
-    if backend != "vmap" and (group_size is not None or env_workers):
-        raise MCRLError("--group-size and --env-workers are for --backend vmap: add --backend vmap or drop them")
+    given = {"address": address, "gpus_per_run": gpus_per_run, "group_size": group_size, "env_workers": env_workers}
+    for option, value in given.items():
+        if value and option not in backends.options_of(backend):
+            flag, other = "--" + option.replace("_", "-"), backends.OPTIONS[option]
+            raise MCRLError(f"{flag} is for --backend {other}: add --backend {other} or drop it")
     if group_size is not None and group_size < 1:
         raise MCRLError(f"--group-size {group_size}: give at least 1 run per group")
     if env_workers < 0:
         raise MCRLError(f"--env-workers {env_workers}: give 0 (environments in the group's process) or more")
-    # vmap: on a CPU one group per core (XLA runs one vmapped step on about one core); on a GPU one group
-    n_workers = workers or (1 if backend == "vmap" and _has_cuda_jax() else cores)
+    cls = backends.get(backend)
+    cores = cpu_count()
+    n_workers = workers or cls.default_workers(cores)
     threads = threads_per_run or max(1, cores // n_workers)
-    exp = Path(exp_dir) if exp_dir is not None else default_exp_dir(plan)
-    exp = exp.absolute()
+    exp = (Path(exp_dir) if exp_dir is not None else default_exp_dir(plan)).absolute()
     old, entries = _merge_with_existing(plan, exp)
     tracker = None
     if tracking or tracking_uri:
         from mcrl.sweep.tracking import Tracker  # imports MLflow: only when tracking
 
         tracker = Tracker.check(tracking_uri, exp)  # probes; writes nothing
-    env = thread_env(threads)
-    ray = None
-    local_instance = False
-    if backend == "ray":
-        if address:
-            check_ray_address(address)
-        ray_auth_env(address)
-        import_ray()
+    settings = backends.Settings(exp, (old or {}).get("id") or uuid.uuid4().hex, n_workers, threads,
+                                 thread_env(threads), workers is not None, threads_per_run is not None, address,
+                                 gpus_per_run, group_size, env_workers)
+    cls.check(settings)
 
     # ---- start
-    if backend == "ray":
-        ray, local_instance = start_ray(address, n_workers * threads)
+    runner = cls(settings)  # e.g. connects to Ray
     result = SweepResult(exp)
-    lock = None
-    drv = None
-    log_pool = None
+    held = drv = log_pool = None
     log_jobs: list = []
 
     def log(run: RunPlan) -> None:
@@ -211,24 +182,25 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
             log_jobs.append(log_pool.submit(log, run))
 
     try:
-        exp.mkdir(parents=True, exist_ok=True)
-        lock = _lock(exp)
-        sweep_id = (old or {}).get("id") or uuid.uuid4().hex
+        try:
+            held = locks.acquire(exp, LOCK)
+        except locks.Locked as e:
+            raise MCRLError(f"another `mcrl sweep` is running on {exp} ({e.holder}): wait for it or stop it "
+                            "first") from None
         grid, fixed = merged_grid_and_set(old, plan)
-        doc = {"preset": plan.preset, "id": sweep_id,
+        doc = {"preset": plan.preset, "id": settings.sweep_id,
                "created": (old or {}).get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
                "grid": grid, "set": fixed, "runs": entries}
         _write_sweep_json(exp, doc)
         (exp / RUNS).mkdir(exist_ok=True)
         if tracker is not None:
-            tracker.open(exp, sweep_id, plan.preset)
+            tracker.open(exp, settings.sweep_id, plan.preset)
             result.tracking_uri, result.tracking_experiment = tracker.uri, tracker.experiment_name
 
         drv = Driver(plan.runs, exp, result, progress, out, on_finish)
         drv.line(f"experiment directory: {exp} ({len(plan.runs)} run{'s' if len(plan.runs) != 1 else ''}, "
-                 f"backend {backend}, "
-                 f"{'up to ' + str(n_workers) + ' at a time, ' if backend == 'local' or workers else ''}"
-                 f"{threads} thread(s) per {'group' if backend == 'vmap' else 'run'})")
+                 f"backend {backend}, up to {runner.slots} at a time, " + (
+                     f"each pinned to {threads} core(s))" if settings.pin else "not pinned to cores)"))
         others = len(entries) - len(plan.runs)
         if others > 0:
             drv.line(f"note: {SWEEP_JSON} lists {others} more run(s) than this command; "
@@ -248,18 +220,8 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
             for name in result.skipped:
                 if not tracker.is_logged(name):
                     on_finish(next(r for r in plan.runs if r.name == name), {})
-        with stop.handle():  # the first SIGINT/SIGTERM: the backend lets the running runs save and stop
-            if backend == "local":
-                run_local(todo, exp, sweep_id, n_workers, env, retries, drv)
-            elif backend == "vmap":
-                run_vmap(todo, exp, sweep_id, n_workers, env, retries, drv, group_size, env_workers)
-            else:
-                if workers:
-                    limit = workers
-                else:
-                    cpus = float(ray.cluster_resources().get("CPU", n_workers * threads))
-                    limit = max(1, int(cpus // threads))
-                run_ray(ray, todo, exp, sweep_id, limit, threads, gpus_per_run, env, retries, local_instance, drv)
+        with stop.handle():  # the first SIGINT/SIGTERM: the driver lets the running runs save and stop
+            drive(runner, todo, drv, retries)
             result.stopped_by = stop.requested()
         if log_pool is not None:
             if any(not j.done() for j in log_jobs):
@@ -271,9 +233,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
             log_pool.shutdown(wait=False, cancel_futures=True)
         if drv is not None:
             drv.close()
-        if lock is not None:
-            lock.close()
-        if ray is not None:
-            with contextlib.suppress(Exception):
-                ray.shutdown()
+        if held is not None:
+            held.release()
+        runner.close()
     return result

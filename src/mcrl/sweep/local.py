@@ -1,39 +1,40 @@
-"""The local backend: one fresh process per job ('spawn' context), at most ``workers`` at a time.
+"""The local backends: one fresh process per job ('spawn' context), at most ``workers`` at a time.
 
-A job is one run (``--backend local``) or a group of runs trained as one vmapped computation
-(``--backend vmap``, see ``mcrl.run.group``). Each worker process starts with the thread limits of
-``worker.thread_env`` in its environment (set before it imports anything, so before jax), writes straight
-into ``EXP/runs/<name>/`` (each run locked, as `mcrl train` locks it), dies with the driver, and sends one
-message back through a pipe: ("ok", {name: summary}, None), ("stopped", {name: step}, None) or ("error", why,
-traceback). A worker that dies without a message (killed, out of memory) is retried from its runs' last
-checkpoints up to ``retries`` times.
+A job is one run (``--backend local``, `LocalBackend`) or a group of runs trained as one vmapped computation
+(``--backend vmap``, `VmapBackend`, see ``mcrl.run.group``). Each worker process starts with the limits of
+``worker.thread_env`` and, with ``--threads-per-run N``, pinned to N cores of its slot (`worker.pin_cores`, so two
+workers never share one), both before it imports anything else (so before jax); it writes straight into
+``EXP/runs/<name>/`` (each run locked, as `mcrl train` locks it), dies with the driver, and sends one message back
+through a pipe: ("ok", {name: summary}), ("stopped", {name: step}), ("locked", {name: None}, holder) or ("error",
+why, traceback). A worker that dies without a message (killed, out of memory) ended as "died": the driver
+(`mcrl.sweep.driver.drive`) starts it again from its runs' last checkpoints if retries are left.
 
-Signals: the driver's first SIGINT or SIGTERM (`mcrl.run.stop`) starts no more runs and sends SIGTERM to the
-running workers, which save each run at its next episode end and report "stopped"; the driver waits for them. A
-worker takes every signal as that one request (a terminal's Ctrl-C reaches it and its driver alike); a second
-signal to the driver kills the workers at once, each run keeping its last checkpoint.
+A stop request (`request_stop`) sends SIGTERM to the running workers, which save each run at its next episode end
+and report "stopped". A worker takes every signal as that one request (a terminal's Ctrl-C reaches it and its
+driver alike); `close(kill=True)` (a second signal to the driver) kills them at once, each run keeping its last
+checkpoint.
 """
 from __future__ import annotations
 
 import contextlib
 import os
 import signal
-import time
-from collections import deque
-from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from mcrl.errors import MCRLError
 from mcrl.run import lock, stop
-from mcrl.sweep.driver import Driver
+from mcrl.sweep.backend import Ended, Job, Settings, Started
 from mcrl.sweep.files import run_dir, run_status
 from mcrl.sweep.plan import RunPlan
-from mcrl.sweep.worker import die_with_parent, error_report, patched_environ, train_group_runs, train_one
+from mcrl.sweep.worker import (die_with_parent, error_report, patched_environ, pin_cores, train_group_runs,
+                               train_one)
 
 
 def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
     """Entry point of a local worker process (spawned; jax not imported yet)."""
     os.environ.update(env)
+    if spec["pin"]:
+        pin_cores(spec["threads"], spec["slot"])
     die_with_parent()
     lock.describe_holder(f"a worker of `mcrl sweep --exp {spec['exp']}`")
     try:
@@ -47,6 +48,9 @@ def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
     except stop.Stopped as e:
         names = {os.path.abspath(r["run_dir"]): r["name"] for r in spec["runs"]}
         conn.send(("stopped", {names[os.path.abspath(d)]: step for d, step in e.saved}, None))
+    except lock.Locked as e:  # another process writes one of its runs
+        names = {os.path.abspath(r["run_dir"]): r["name"] for r in spec["runs"]}
+        conn.send(("locked", {names.get(os.path.abspath(e.directory), spec["runs"][0]["name"]): None}, e.holder))
     except MCRLError as e:
         conn.send(("error", str(e), None))
     except KeyboardInterrupt:
@@ -57,117 +61,117 @@ def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
         conn.close()
 
 
-def run_local(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
-              drv: Driver) -> None:
-    """Run `todo` in worker processes, one run each, reporting each run's end to `drv`."""
-    run_jobs([[r] for r in todo], exp, sweep_id, workers, env, retries, drv)
+class LocalBackend:
+    """A spawned process per run on this machine."""
 
+    name: ClassVar[str] = "local"
+    group: ClassVar[bool] = False
 
-def run_jobs(jobs: list[list[RunPlan]], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
-             drv: Driver, group: bool = False, env_workers: int = 0) -> None:
-    """Run each job (its runs as one vmapped group if `group`) in a worker process, at most `workers` at a
-    time, reporting each run's end to `drv`."""
-    import multiprocessing as mp
-    from multiprocessing.connection import wait
+    def __init__(self, settings: Settings):
+        import multiprocessing as mp
 
-    ctx = mp.get_context("spawn")
-    queue = deque((job, 0) for job in jobs)
-    running: dict[str, tuple] = {}  # job label -> (process, conn, runs, attempt, t0)
-    stopping = False
-    try:
-        while queue or running:
-            if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
-                stopping = True
-                queue.clear()
-                drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
-                         "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
-                for proc, *_ in running.values():
-                    with contextlib.suppress(OSError):
-                        os.kill(proc.pid, signal.SIGTERM)
-                if not running:
-                    break
-            while queue and len(running) < workers:
-                job, attempt = queue.popleft()
-                spec = {"runs": [{"name": r.name, "config": r.config.to_dict(), "run_dir": str(run_dir(exp, r.name))}
-                                 for r in job], "group": group, "env_workers": env_workers,
-                        "exp": str(exp), "sweep_id": sweep_id}
-                label = job[0].name if len(job) == 1 else f"group of {len(job)} ({job[0].name} ...)"
-                reader, writer = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_local_worker, args=(spec, env, writer), name=f"mcrl-{job[0].name}",
-                                   daemon=True)
-                with patched_environ(env):  # the child's environment from its first instruction on
-                    proc.start()
-                writer.close()
-                running[label] = (proc, reader, job, attempt, time.monotonic())
-                hows = []
-                for r in job:
-                    state, step = run_status(run_dir(exp, r.name))
-                    drv.set_steps(r.name, step)
-                    hows.append(f"resume {r.name} from step {step}" if state == "checkpoint" else f"start {r.name}")
-                if len(job) == 1:
-                    drv.line(f"{drv.tag()} {hows[0]} (pid {proc.pid})")
-                else:
-                    drv.line(f"{drv.tag()} {label.split(' (')[0]} as one computation (pid {proc.pid}): "
-                             f"{'; '.join(hows)}")
-            ready = wait([p.sentinel for p, *_ in running.values()], timeout=1.0)
-            for label in [n for n, (p, *_rest) in running.items() if p.sentinel in ready]:
-                proc, reader, job, attempt, t0 = running.pop(label)
-                proc.join()
-                msg = None
-                with contextlib.suppress(EOFError, OSError):
-                    if reader.poll():
-                        msg = reader.recv()
-                reader.close()
-                if msg is not None and msg[0] == "ok":
-                    for r in job:
-                        drv.done(r, t0, msg[1][r.name])
-                    continue
-                if msg is not None and msg[0] == "stopped":
-                    for r in job:
-                        drv.stopped(r.name, msg[1].get(r.name))
-                    continue
-                if msg is not None:
-                    for r in job:
-                        drv.failed(r.name, msg[1], msg[2])
-                    continue
+        self.s = settings
+        self.slots = settings.workers
+        self._ctx = mp.get_context("spawn")
+        self._running: dict[int, tuple] = {}  # job id -> (job, process, reader, slot)
+
+    @classmethod
+    def default_workers(cls, cores: int) -> int:
+        return cores
+
+    @classmethod
+    def check(cls, settings: Settings) -> None:
+        pass
+
+    def jobs(self, todo: list[RunPlan]) -> list[list[RunPlan]]:
+        return [[r] for r in todo]
+
+    def launch(self, job: Job) -> str:
+        used = {slot for *_, slot in self._running.values()}
+        slot = next(i for i in range(len(self._running) + 1) if i not in used)  # the cores no running job has
+        s = self.s
+        spec = {"runs": [{"name": r.name, "config": r.config.to_dict(), "run_dir": str(run_dir(s.exp, r.name))}
+                         for r in job.runs], "group": self.group, "env_workers": s.env_workers, "exp": str(s.exp),
+                "sweep_id": s.sweep_id, "threads": s.threads, "pin": s.pin, "slot": slot}
+        reader, writer = self._ctx.Pipe(duplex=False)
+        proc = self._ctx.Process(target=_local_worker, args=(spec, s.env, writer), name=f"mcrl-{job.runs[0].name}",
+                                 daemon=True)
+        with patched_environ(s.env):  # the child's environment from its first instruction on
+            proc.start()
+        writer.close()
+        self._running[job.id] = (job, proc, reader, slot)
+        return f"pid {proc.pid}"
+
+    def poll(self, timeout: float) -> list[Started | Ended]:
+        from multiprocessing.connection import wait
+
+        if not self._running:
+            return []
+        ready = wait([p.sentinel for _, p, _, _ in self._running.values()], timeout=timeout)
+        out = []
+        for job_id in [i for i, (_, p, _, _) in self._running.items() if p.sentinel in ready]:
+            job, proc, reader, _ = self._running.pop(job_id)
+            proc.join()
+            msg = None
+            with contextlib.suppress(EOFError, OSError):
+                if reader.poll():
+                    msg = reader.recv()
+            reader.close()
+            if msg is None:
                 code = proc.exitcode
                 why = (f"worker killed by signal {-code}" if code is not None and code < 0
                        else f"worker exited with code {code}")
-                if attempt < retries and not stopping:
-                    drv.line(f"{drv.tag()} {label}: {why}; retrying from its last checkpoint "
-                             f"({attempt + 1} of {retries})")
-                    queue.appendleft((job, attempt + 1))
-                else:
-                    for r in job:
-                        drv.failed(r.name, why)
-            drv.poll([r.name for _p, _c, job, *_ in running.values() for r in job])
-    except KeyboardInterrupt:  # a second signal: stop the workers at once (each run keeps its last checkpoint)
-        for proc, *_ in running.values():
-            proc.kill()
-        raise
-    finally:
-        for proc, *_ in running.values():  # interrupted: stop the runs (each keeps its checkpoints)
-            if proc.is_alive():
+                out.append(Ended(job, "died", why=why))
+            elif msg[0] in ("ok", "stopped"):
+                out.append(Ended(job, msg[0], results=msg[1]))
+            elif msg[0] == "locked":
+                out.append(Ended(job, "locked", results=msg[1], holder=msg[2]))
+            else:
+                out.append(Ended(job, "error", why=msg[1], traceback=msg[2]))
+        return out
+
+    def request_stop(self) -> None:
+        for _, proc, _, _ in self._running.values():
+            with contextlib.suppress(OSError):
+                os.kill(proc.pid, signal.SIGTERM)
+
+    def close(self, kill: bool = False) -> None:
+        for _, proc, _, _ in self._running.values():
+            if kill:
+                proc.kill()
+            elif proc.is_alive():  # interrupted: stop the runs (each keeps its checkpoints)
                 proc.terminate()
-        for proc, reader, *_ in running.values():
+        for _, proc, reader, _ in self._running.values():
             proc.join(10)
             if proc.is_alive():
                 proc.kill()
                 proc.join()
             reader.close()
+        self._running.clear()
 
 
-def run_vmap(todo: list[RunPlan], exp: Path, sweep_id: str, workers: int, env: dict[str, str], retries: int,
-             drv: Driver, group_size: int | None = None, env_workers: int = 0) -> None:
-    """The vmap backend: runs whose configs share shapes (``mcrl.run.group.group_key``) and resume from the
-    same step train as one group per worker process; groups of at most `group_size` runs (default: the runs
-    shared evenly among the `workers` processes)."""
-    from mcrl.run.group import plan_groups  # imports jax: not at this module's import
+class VmapBackend(LocalBackend):
+    """Runs whose configs share shapes (``mcrl.run.group.group_key``) and resume from the same step train as one
+    group per worker process; groups of at most `group_size` runs (default: the runs shared evenly among the
+    workers)."""
 
-    by_step: dict[int, list[RunPlan]] = {}
-    for r in todo:
-        by_step.setdefault(run_status(run_dir(exp, r.name))[1], []).append(r)
-    size = group_size or max(1, -(-len(todo) // max(1, workers)))
-    jobs = [[runs[i] for i in ix] for runs in by_step.values()
-            for ix in plan_groups([r.config for r in runs], size)]
-    run_jobs(jobs, exp, sweep_id, workers, env, retries, drv, group=True, env_workers=env_workers)
+    name: ClassVar[str] = "vmap"
+    group: ClassVar[bool] = True
+
+    @classmethod
+    def default_workers(cls, cores: int) -> int:
+        # on a CPU one group per core (XLA runs one vmapped step on about one core); on a GPU one group
+        import importlib.util
+
+        cuda = any(importlib.util.find_spec(m) is not None for m in ("jax_cuda12_plugin", "jax_cuda13_plugin"))
+        return 1 if cuda else cores
+
+    def jobs(self, todo: list[RunPlan]) -> list[list[RunPlan]]:
+        from mcrl.run.group import plan_groups  # imports jax: not at this module's import
+
+        by_step: dict[int, list[RunPlan]] = {}
+        for r in todo:
+            by_step.setdefault(run_status(run_dir(self.s.exp, r.name))[1], []).append(r)
+        size = self.s.group_size or max(1, -(-len(todo) // max(1, self.s.workers)))
+        return [[runs[i] for i in ix] for runs in by_step.values()
+                for ix in plan_groups([r.config for r in runs], size)]

@@ -1,16 +1,19 @@
-"""The Ray backend: one Ray task per run, on an existing cluster (``address``) or on a local Ray instance
-started on demand.
+"""The Ray backend (`RayBackend`): one Ray task per run, on an existing cluster (``address``) or on a local Ray
+instance started on demand.
 
-Each task declares ``num_cpus=threads_per_run`` (and ``num_gpus``) and runs in a fresh worker process
-with the local backend's thread settings (``worker.thread_env``), so a sweep gives the same numbers on
-both. A task that sees ``EXP`` (shared filesystem) writes into it; one that does not trains in a
-temporary directory and ships the run's files back (``files.collect_run_files``): each new checkpoint
-through an ``_Inbox`` actor while it trains, everything at the end. The driver writes them into ``EXP``, holding
-the run's lock (`mcrl.run.lock`) meanwhile, as a task that writes into ``EXP`` holds it itself.
+Each task declares ``num_cpus=threads`` (and ``num_gpus``) and runs in a fresh worker process with the local
+backend's settings: ``worker.thread_env`` and, with ``--threads-per-run N``, pinned to N cores of its slot
+(``worker.pin_cores``: exact on a local instance; on a cluster's node the slot's cores may overlap another task's,
+the count and so the numbers are right), so a sweep gives the same numbers on both. A task that sees ``EXP``
+(shared filesystem) writes into it; one that does not trains in a temporary directory and ships the run's files back
+(``files.collect_run_files``): each new checkpoint through an ``_Inbox`` actor while it trains, everything at the
+end. The driver writes them into ``EXP``, holding the run's lock (`mcrl.run.lock`) meanwhile, as a task that
+writes into ``EXP`` holds it itself.
 
-Signals: the driver's first SIGINT or SIGTERM (`mcrl.run.stop`) starts no more tasks and raises a flag in the
-``_Inbox``; each running task polls it and stops its run at the next episode end with a checkpoint (shipped back
-if need be), as `mcrl train` does on a signal. A second signal cancels the tasks at once.
+A stop request (`request_stop`) raises a flag in the ``_Inbox``; each running task polls it and stops its run at
+the next episode end with a checkpoint (shipped back if need be), as `mcrl train` does on a signal.
+``close(kill=True)`` cancels the tasks at once. A task whose worker died (killed, node lost) ends as "died", and
+the driver (`mcrl.sweep.driver.drive`) starts it again if retries are left (Ray's own retries are off).
 
 Ray is imported only when the sweep uses it (``import_ray``), after ``ray_auth_env`` has set what Ray
 reads at import time.
@@ -21,23 +24,20 @@ import contextlib
 import os
 import re
 import shutil
-import signal
 import socket
 import sys
 import tempfile
 import threading
-import time
-from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from mcrl.errors import MCRLError
 from mcrl.run import lock, rundir, stop
-from mcrl.sweep.driver import Driver
-from mcrl.sweep.files import collect_run_files, run_dir, run_status, write_run_files
 from mcrl.run.rundir import SWEEP_JSON
+from mcrl.sweep.backend import Ended, Job, Settings, Started
+from mcrl.sweep.files import collect_run_files, run_dir, run_status, write_run_files
 from mcrl.sweep.plan import RunPlan
-from mcrl.sweep.worker import error_report, train_one
+from mcrl.sweep.worker import error_report, pin_cores, train_one
 
 # Debugging / testing knob (read on the driver): "auto" (default) = a Ray worker writes into EXP when it can
 # see it; "always" = every Ray run trains in a temporary directory and ships its files back; or a
@@ -147,6 +147,8 @@ def _sees_experiment(spec: dict[str, Any]) -> bool:
 
 def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> dict[str, Any]:
     """One run as a Ray task (runs in a fresh worker whose thread env vars came with the task)."""
+    if spec["pin"]:
+        pin_cores(spec["threads"], spec["slot"])  # before train_one imports jax
     import ray
 
     if ray.get(inbox.stopping.remote()):
@@ -205,6 +207,8 @@ def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> 
     except stop.Stopped as e:
         ((_, step),) = e.saved
         return {"stopped": step}
+    except lock.Locked as e:  # another process writes the run
+        return {"locked": e.holder}
     except MCRLError as e:
         return {"error": str(e)}
     except Exception as e:
@@ -217,103 +221,131 @@ def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> 
 # ------------------------------------------------------------------------------ the driver side
 
 
-def run_ray(ray, todo: list[RunPlan], exp: Path, sweep_id: str, limit: int, threads: int, gpus: float,
-            env: dict[str, str], retries: int, local_instance: bool, drv: Driver) -> None:
-    """Run `todo` as Ray tasks, at most `limit` at a time, reporting each run's end to `drv`."""
-    ship_knob = os.environ.get(SHIP_ENV, "auto").strip() or "auto"
-    ship_names = None if ship_knob in ("auto", "always") else {s.strip() for s in ship_knob.split(",")}
+class RayBackend:
+    """A Ray task per run (see the module's docstring)."""
 
-    def forced(name: str) -> bool:
-        return ship_knob == "always" or (ship_names is not None and name in ship_names)
+    name: ClassVar[str] = "ray"
 
-    inbox = ray.remote(num_cpus=0)(_Inbox).remote()
-    # max_calls=1: a fresh worker process per run (its thread settings from the first instruction on, and
-    # its memory returned when the run ends)
-    task = ray.remote(max_calls=1)(_ray_task).options(num_cpus=threads, num_gpus=gpus or 0, max_retries=retries,
-                                                      runtime_env={"env_vars": env})
-    queue = deque(todo)
-    inflight: dict[Any, tuple] = {}  # ref -> (run, t0, seed ref)
-    by_name: dict[str, RunPlan] = {r.name: r for r in todo}
-    locks: dict[str, lock.RunLock] = {}  # runs whose files this driver writes (their tasks ship them back)
-    stopping = False
-    try:
-        while queue or inflight:
-            if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
-                stopping = True
-                queue.clear()
-                drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
-                         "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
-                ray.get(inbox.request_stop.remote())
-                if not inflight:
-                    break
-            while queue and len(inflight) < limit:
-                run = queue.popleft()
-                rdir = run_dir(exp, run.name)
-                state, step = run_status(rdir)
-                seed_box = []
-                if state == "checkpoint" and (forced(run.name) or not local_instance):
-                    seed_box = [ray.put(collect_run_files(rdir, final=False))]  # fetched only if needed
-                spec = {"name": run.name, "config": run.config.to_dict(), "run_dir": str(rdir),
-                        "exp": str(exp), "sweep_id": sweep_id}
-                ref = task.remote(spec, inbox, seed_box, forced(run.name))
-                inflight[ref] = (run, time.monotonic(), seed_box)
-                drv.set_steps(run.name, step)
-                how = f" (resumes from step {step})" if state == "checkpoint" else ""
-                drv.line(f"{drv.tag()} queued {run.name}{how}")
-            ready, _ = ray.wait(list(inflight), num_returns=len(inflight), timeout=1.0)
-            for msg in ray.get(inbox.drain.remote()):  # after wait: a finished task's messages are all in
-                if msg[0] == "start":
-                    _, name, pid, host, shared = msg
-                    drv.line(f"{drv.tag()} start {name} (pid {pid} on {host}"
-                             f"{'' if shared else ', files shipped back'})")
-                    if not shared and name not in locks:  # (a retried task starts again: locked already)
-                        try:
-                            locks[name] = lock.acquire(run_dir(exp, name))
-                        except MCRLError as e:  # someone else writes the run: it cannot be shipped into it
-                            ref = next(r for r, (run, *_) in inflight.items() if run.name == name)
-                            with contextlib.suppress(Exception):
-                                ray.cancel(ref, force=True)
-                            inflight.pop(ref)
-                            drv.failed(name, str(e))
-                elif msg[0] == "files" and msg[1] in locks:
-                    _, name, files = msg
-                    write_run_files(run_dir(exp, name), files, by_name[name].config.keep_checkpoints)
-                    drv.set_steps(name, run_status(run_dir(exp, name))[1])
-            for ref in ready:
-                if ref not in inflight:  # cancelled above
-                    continue
-                run, t0, _seed = inflight.pop(ref)
-                held = locks.pop(run.name, None)
-                try:
-                    _finish(ray, ref, run, t0, exp, drv)
-                finally:
-                    if held is not None:
-                        held.release()
-            drv.poll([r.name for r, *_ in inflight.values()])
-    finally:
-        for ref in inflight:
+    def __init__(self, settings: Settings):
+        self.s = settings
+        self.ray, self.local_instance = start_ray(settings.address, settings.workers * settings.threads)
+        ray = self.ray
+        if settings.workers_given:
+            self.slots = settings.workers
+        else:  # as many as the cluster's CPUs allow
+            cpus = float(ray.cluster_resources().get("CPU", settings.workers * settings.threads))
+            self.slots = max(1, int(cpus // settings.threads))
+        knob = os.environ.get(SHIP_ENV, "auto").strip() or "auto"
+        self._ship_all = knob == "always"
+        self._ship_names = None if knob in ("auto", "always") else {n.strip() for n in knob.split(",")}
+        self._inbox = ray.remote(num_cpus=0)(_Inbox).remote()
+        # max_calls=1: a fresh worker process per run (its cores and thread settings from the first instruction
+        # on, and its memory returned when the run ends); retries are the driver's
+        self._task = ray.remote(max_calls=1)(_ray_task).options(
+            num_cpus=settings.threads, num_gpus=settings.gpus_per_run or 0, max_retries=0,
+            runtime_env={"env_vars": settings.env})
+        self._inflight: dict[Any, tuple[Job, int]] = {}  # ref -> (job, slot)
+        self._locks: dict[str, lock.RunLock] = {}  # runs whose files this driver writes (their tasks ship them)
+
+    @classmethod
+    def default_workers(cls, cores: int) -> int:
+        return cores
+
+    @classmethod
+    def check(cls, settings: Settings) -> None:
+        if settings.address:
+            check_ray_address(settings.address)
+        ray_auth_env(settings.address)
+        import_ray()
+
+    def jobs(self, todo: list[RunPlan]) -> list[list[RunPlan]]:
+        return [[r] for r in todo]
+
+    def _forced(self, name: str) -> bool:
+        return self._ship_all or (self._ship_names is not None and name in self._ship_names)
+
+    def launch(self, job: Job) -> None:
+        (run,) = job.runs
+        rdir = run_dir(self.s.exp, run.name)
+        used = {slot for _, slot in self._inflight.values()}
+        slot = next(i for i in range(len(self._inflight) + 1) if i not in used)
+        seed_box = []
+        if run_status(rdir)[0] == "checkpoint" and (self._forced(run.name) or not self.local_instance):
+            seed_box = [self.ray.put(collect_run_files(rdir, final=False))]  # fetched only if needed
+        spec = {"name": run.name, "config": run.config.to_dict(), "run_dir": str(rdir), "exp": str(self.s.exp),
+                "sweep_id": self.s.sweep_id, "threads": self.s.threads, "pin": self.s.pin, "slot": slot}
+        ref = self._task.remote(spec, self._inbox, seed_box, self._forced(run.name))
+        self._inflight[ref] = (job, slot)
+        return None  # it says where when its task starts
+
+    def poll(self, timeout: float) -> list[Started | Ended]:
+        ray, out = self.ray, []
+        if not self._inflight:
+            return out
+        ready, _ = ray.wait(list(self._inflight), num_returns=len(self._inflight), timeout=timeout)
+        by_name = {job.runs[0].name: (ref, job) for ref, (job, _) in self._inflight.items()}
+        for msg in ray.get(self._inbox.drain.remote()):  # after wait: a finished task's messages are all in
+            if msg[1] not in by_name:
+                continue
+            ref, job = by_name[msg[1]]
+            if msg[0] == "start":
+                _, name, pid, host, shared = msg
+                out.append(Started(job, f"pid {pid} on {host}{'' if shared else ', files shipped back'}"))
+                if not shared and name not in self._locks:  # (a retried task starts again: locked already)
+                    try:
+                        self._locks[name] = lock.acquire(run_dir(self.s.exp, name))
+                    except lock.Locked as e:  # someone else writes the run: it cannot be shipped into it
+                        with contextlib.suppress(Exception):
+                            ray.cancel(ref, force=True)
+                        self._inflight.pop(ref)
+                        out.append(Ended(job, "locked", results={name: None}, holder=e.holder))
+            elif msg[0] == "files" and msg[1] in self._locks:
+                write_run_files(run_dir(self.s.exp, msg[1]), msg[2], job.runs[0].config.keep_checkpoints)
+        for ref in ready:
+            if ref not in self._inflight:  # cancelled above
+                continue
+            job, _ = self._inflight.pop(ref)
+            held = self._locks.pop(job.runs[0].name, None)
+            try:
+                out.append(self._ended(ref, job))
+            finally:
+                if held is not None:
+                    held.release()
+        return out
+
+    def _ended(self, ref, job: Job) -> Ended:
+        """The end of `job`'s task `ref`, the files it shipped back written into EXP."""
+        (run,) = job.runs
+        try:
+            res = self.ray.get(ref)
+        except Exception as e:  # the worker died (killed, out of memory, node lost)
+            first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+            return Ended(job, "died", why=f"{type(e).__name__}: {first}"[:300])
+        if "error" in res:
+            return Ended(job, "error", why=res["error"], traceback=res.get("traceback"))
+        if "locked" in res:
+            return Ended(job, "locked", results={run.name: None}, holder=res["locked"])
+        if "files" in res:
+            write_run_files(run_dir(self.s.exp, run.name), res["files"], run.config.keep_checkpoints)
+        if "stopped" in res:
+            return Ended(job, "stopped", results={run.name: res["stopped"]})
+        return Ended(job, "ok", results={run.name: res["summary"]})
+
+    def request_stop(self) -> None:
+        self.ray.get(self._inbox.request_stop.remote())
+
+    def close(self, kill: bool = False) -> None:
+        if self.ray is None:
+            return
+        for ref in self._inflight:
             with contextlib.suppress(Exception):
-                ray.cancel(ref, force=True)
+                self.ray.cancel(ref, force=True)
         with contextlib.suppress(Exception):
-            ray.kill(inbox)
-        for held in locks.values():
+            self.ray.kill(self._inbox)
+        for held in self._locks.values():
             held.release()
-
-
-def _finish(ray, ref, run: RunPlan, t0: float, exp: Path, drv: Driver) -> None:
-    """Report the end of `run`'s task `ref` to `drv`, writing the files it shipped back."""
-    try:
-        out = ray.get(ref)
-    except Exception as e:  # the worker died (killed, out of memory, node lost) after its retries
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        drv.failed(run.name, f"{type(e).__name__}: {first}"[:300])
-        return
-    if "error" in out:
-        drv.failed(run.name, out["error"], out.get("traceback"))
-        return
-    if "files" in out:
-        write_run_files(run_dir(exp, run.name), out["files"], run.config.keep_checkpoints)
-    if "stopped" in out:
-        drv.stopped(run.name, out["stopped"])
-    else:
-        drv.done(run, t0, out["summary"])
+        self._inflight.clear()
+        self._locks.clear()
+        with contextlib.suppress(Exception):
+            self.ray.shutdown()
+        self.ray = None

@@ -1,15 +1,17 @@
-"""A worker process, whichever backend started it: its thread limits, its one run, and its death with the
-driver.
+"""A worker process, whichever backend started it: its cores, its runs, and its death with the driver.
 
-A worker trains one run with the same environment on every backend (``thread_env``), so a sweep gives
-the same numbers locally and on Ray. The thread limits must be set before jax is imported, which is
-why nothing in ``mcrl.sweep`` imports jax at import time and ``train_one`` imports the trainer late.
+With ``--threads-per-run N`` a worker is pinned to N cores (``pin_cores``: ``os.sched_setaffinity``, which XLA's
+thread pool respects, since XLA sizes it by the cores the process may use); without it, it may use every core,
+as `mcrl train` does. It limits the thread pools of the libraries that read environment variables
+(``thread_env``). Both happen the same way on every backend, so a sweep gives the same numbers locally and on
+Ray, and before jax is imported, which is why nothing in ``mcrl.sweep`` imports jax at import time and
+``train_one`` imports the trainer late. (XLA's own thread flags, ``--xla_cpu_multi_thread_eigen=false
+intra_op_parallelism_threads=N``, do not keep XLA to N cores on jax 0.10: ``benchmarks/xla_threads.py``.)
 """
 from __future__ import annotations
 
 import contextlib
 import os
-import re
 import threading
 import time
 import traceback
@@ -29,19 +31,31 @@ def cpu_count() -> int:
 
 
 def thread_env(threads: int, base: dict[str, str] | None = None) -> dict[str, str]:
-    """Environment variables that limit one run to `threads` threads; set before jax is imported.
-
-    On jax 0.10.2 the XLA flags among them do not keep XLA to one core (`benchmarks/xla_threads.py`: a matmul
-    loop uses both cores of a 2-core machine with them as without them); pinning the process to cores does.
-
-    The driver's other XLA flags are kept, so a run sees the same flags on every backend."""
+    """Environment variables that size the OpenMP / BLAS thread pools of one run to `threads`; set before those
+    libraries load. XLA's pool follows the cores the process may use (`pin_cores`). The driver's XLA_FLAGS
+    (`base`: its environment) come along, so a run sees the same flags on every backend."""
     base = os.environ if base is None else base
-    keep = [f for f in base.get("XLA_FLAGS", "").split()
-            if not re.match(r"^(--)?(xla_cpu_multi_thread_eigen|intra_op_parallelism_threads)\b", f)]
     n = str(int(threads))
-    flags = " ".join(keep + ["--xla_cpu_multi_thread_eigen=false", f"intra_op_parallelism_threads={n}"])
-    return {"XLA_FLAGS": flags, "OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n,
-            "NUMEXPR_NUM_THREADS": n, "VECLIB_MAXIMUM_THREADS": n}
+    env = {"OMP_NUM_THREADS": n, "MKL_NUM_THREADS": n, "OPENBLAS_NUM_THREADS": n, "NUMEXPR_NUM_THREADS": n,
+           "VECLIB_MAXIMUM_THREADS": n}
+    return {**env, "XLA_FLAGS": base["XLA_FLAGS"]} if base.get("XLA_FLAGS") else env
+
+
+def pin_cores(threads: int, slot: int) -> list[int]:
+    """Bind this process to `threads` of the cores it may use: slot `slot`'s (slots 0, 1, ... take consecutive
+    blocks, wrapping around when there are more slots than blocks); all of them when `threads` covers them. Call
+    before jax is imported: XLA sizes its thread pool by these cores (so they also set the run's float results:
+    docs/algorithm.md, "Reproducibility and resume"). Returns the cores."""
+    try:
+        mask = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux: no pinning
+        return []
+    if threads >= len(mask):
+        return mask
+    start = (slot * threads) % len(mask)
+    cores = [mask[(start + i) % len(mask)] for i in range(threads)]
+    os.sched_setaffinity(0, cores)
+    return cores
 
 
 @contextlib.contextmanager
