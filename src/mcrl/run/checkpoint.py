@@ -68,9 +68,9 @@ def install(run_dir: Path, step: int, write: Callable[[Path], None], keep: int) 
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # a full disk gets its space back; `latest` still names the last
         raise
+    old = ckpt_root / f".old-{final.name}"
+    shutil.rmtree(old, ignore_errors=True)  # left by a kill between the two renames below
     if final.exists():  # the same step saved again (a resumed run): move the old one aside, drop it after
-        old = ckpt_root / f".old-{final.name}"
-        shutil.rmtree(old, ignore_errors=True)
         os.rename(final, old)
         os.rename(tmp, final)
         shutil.rmtree(old, ignore_errors=True)

@@ -192,8 +192,9 @@ def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[
             rng.bit_generator.state = meta["host_rng"]
             progress = Progress(meta["step"], meta["episode"], meta["eval_round"], meta["interval"], meta["last_eval"])
         rundir.write_json_atomic(run_dir / rundir.CONFIG, cfg.to_dict())
-        for stale in (rundir.DONE, rundir.FINAL_EVAL):
-            (run_dir / stale).unlink(missing_ok=True)
+        (run_dir / rundir.DONE).unlink(missing_ok=True)
+        if progress.step < cfg.total_steps:  # killed after its final evaluation and checkpoint: that evaluation stands
+            (run_dir / rundir.FINAL_EVAL).unlink(missing_ok=True)
         return Member(cfg, run_dir, env, agent, buffer, rng, progress, resumed=resume, lock=lock), state, diag
     except BaseException:
         env.close()
