@@ -32,11 +32,11 @@ restore_runs() {
   done
 }
 
-# sync_runs PYTHON REPO WORK COMMITTED: finished runs' small files into git's tree (sync_runs.py, stdlib only,
-# records the machine of each newly finished run)
+# sync_runs PYTHON REPO WORK COMMITTED: finished runs' small files into git's tree (scripts/sync_runs.py, stdlib
+# only, records the machine of each newly finished run)
 sync_runs() {
   [ -d "$3" ] || return 0
-  "$1" "$2/benchmarks/sync_runs.py" "$3" "$4" --machine "$(machine_name)"
+  "$1" "$2/scripts/sync_runs.py" "$3" "$4" --machine "$(machine_name)"
 }
 
 # check_not_ignored REPO FILE...: a synced file git ignores would be lost with the machine: say so now

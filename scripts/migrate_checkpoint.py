@@ -19,7 +19,7 @@ Two older formats are converted (a checkpoint already in today's format is left 
 Given a run directory (it has `config.json` and `checkpoints/`), its `config.json` and every checkpoint are
 converted. Without `--out` the conversion is in place: each checkpoint is written beside the old one under a
 temporary name and renamed over it, so a kill leaves the old or the new one, never half of one. With `--out`
-the source is only read. From Python (benchmarks/transplant.py does this)::
+the source is only read. From Python (studies/sb3-parity/transplant.py does this)::
 
     from migrate_checkpoint import migrate          # with scripts/ on sys.path
     new_ckpt = migrate(Path("old/checkpoints/step_000010000"), Path("/tmp/step_000010000"))

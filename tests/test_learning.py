@@ -2,8 +2,8 @@
 
 Measured (seed 0, torch-style initialisation, 20 episodes per evaluation): SAC-MC 0.05 at 6,000 steps, 0.6 at
 7,000, 1.0 at 8,000; mcrl SAC 0.8 at 7,000; stable-baselines3 SAC at the same settings 0.65 at 6,000 and 1.0 at
-7,000 (`python benchmarks/parity_sb3.py sb3 --preset fetchreach-sac --seed 0 --steps 8000 --set eval_every=1000
---set eval_episodes=20 --run-dir DIR`). The preset's 9,000 steps leave a margin of 1,000."""
+7,000 (`python studies/sb3-parity/parity_sb3.py sb3 --preset fetchreach-sac --seed 0 --steps 8000
+--set eval_every=1000 --set eval_episodes=20 --run-dir DIR`). The preset's 9,000 steps leave a margin of 1,000."""
 import pytest
 
 from mcrl.config import resolve_config

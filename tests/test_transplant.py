@@ -1,4 +1,4 @@
-"""benchmarks/transplant.py (issue 26 item 3): a learning state moves between mcrl's checkpoint files and
+"""studies/sb3-parity/transplant.py (issue 26 item 3): a learning state moves between mcrl's checkpoint files and
 stable-baselines3 exactly, and one gradient step from the moved state agrees between the two systems."""
 import subprocess
 import sys
@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("stable_baselines3")
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[1] / "studies" / "sb3-parity"
 sys.path.insert(0, str(BENCH))
 
 TINY = {"hidden_sizes": [32, 32], "buffer_size": 5_000, "batch_size": 32, "learning_starts": 100,

@@ -8,7 +8,7 @@ learning switched off, driven by the same fixed policy.
 `run` trains nothing. mcrl's side is mcrl's own loop (`mcrl.run.trainer.train_runs`, so its warm-up, act / step /
 store / sample order, episode ends and seeding) with a learner that only draws the replay batch each step and
 records its rewards. stable-baselines3's side is SB3's own `collect_rollouts` and `HerReplayBuffer.sample` at the
-same preset's settings (`benchmarks/_sb3.py: build_model`), with a `train` that only samples and records. Both
+same preset's settings (`_sb3.py: build_model`, see `_benchmarks`), with a `train` that only samples and records. Both
 act with the same policy: uniform random actions, or the stochastic policy of an mcrl checkpoint (tanh of a
 Gaussian sample of its actor), each system with its own random stream. Per gradient step it records the batch's
 mean reward, and of its real and its relabelled rows separately; at the end, per episode (from the buffer), whether
@@ -29,10 +29,12 @@ EVERY = 1000  # the JSON keeps the batch records' means over each EVERY env step
 
 
 def _benchmarks() -> Path:
-    """benchmarks/ of the mcrl this Python imports (run with a pinned clone's venv, its own runner is used)."""
+    """The SB3 runner's folder of the mcrl this Python imports (run with a pinned clone's venv, its own runner is
+    used): studies/sb3-parity/, or benchmarks/ in clones from before it moved there."""
     import mcrl
 
-    return Path(mcrl.__file__).resolve().parents[2] / "benchmarks"
+    root = Path(mcrl.__file__).resolve().parents[2]
+    return next((d for d in (root / "studies" / "sb3-parity", root / "benchmarks") if (d / "_sb3.py").is_file()))
 
 
 def _policy(spec: str, seed: int):

@@ -1,8 +1,8 @@
 """The stable-baselines3 side of ``parity_sb3.py`` and ``transplant.py``: SB3's SAC+HER at an mcrl preset's
 settings (``ParitySAC``: SB3's gradient step, also summing mcrl's per-step diagnostics), evaluated with mcrl's own
 episode runner and seeds, writing an mcrl-format run directory and resumable checkpoints
-(``RUN_DIR/sb3_checkpoints/``). Run it through ``python benchmarks/parity_sb3.py sb3 ...``; the design and its
-checks are in docs/parity.md.
+(``RUN_DIR/sb3_checkpoints/``). Run it through ``python studies/sb3-parity/parity_sb3.py sb3 ...``; the design
+and its checks are in docs/studies/sb3-parity.md.
 
 Nothing here imports torch or stable-baselines3 at import time, so ``parity_sb3.py compare`` and ``--help`` work
 without the ``bench`` extra, and ``OMP_NUM_THREADS`` can still be set before torch loads.
@@ -71,7 +71,7 @@ def check_mirrorable(cfg, env) -> bool:
 
 
 def sac_kwargs(cfg, her: bool) -> dict[str, Any]:
-    """Keyword arguments of SB3's SAC for an mcrl Config (see docs/parity.md for the mapping)."""
+    """Keyword arguments of SB3's SAC for an mcrl Config (see docs/studies/sb3-parity.md for the mapping)."""
     kw: dict[str, Any] = dict(
         learning_rate=cfg.learning_rate,
         buffer_size=cfg.buffer_size,

@@ -2,10 +2,10 @@
 
 Two subcommands (run from the repository root; the ``sb3`` one needs ``pip install -e ".[bench]"``)::
 
-    python benchmarks/parity_sb3.py sb3 --seed N [--steps 150000] [--preset fetchpush-sac]
-                                        [--set key=value ...] [--threads 1] --run-dir DIR [--overwrite]
-    python benchmarks/parity_sb3.py sb3 --resume --run-dir DIR
-    python benchmarks/parity_sb3.py compare --mcrl RUN_DIR... --sb3 RUN_DIR... --out DIR [--every 5000]
+    python studies/sb3-parity/parity_sb3.py sb3 --seed N [--steps 150000] [--preset fetchpush-sac]
+                                                [--set key=value ...] [--threads 1] --run-dir DIR [--overwrite]
+    python studies/sb3-parity/parity_sb3.py sb3 --resume --run-dir DIR
+    python studies/sb3-parity/parity_sb3.py compare --mcrl RUN_DIR... --sb3 RUN_DIR... --out DIR [--every 5000]
 
 ``sb3`` trains stable-baselines3's SAC with ``HerReplayBuffer`` at exactly the settings of an mcrl preset
 (read from ``mcrl.config.resolve_config``) and writes an mcrl-format run directory (``config.json``,
@@ -23,7 +23,7 @@ steps and confirms their parameters are bit-identical, i.e. that recording the d
 ``check-resume`` (a self-test) kills an SB3 run with SIGKILL after a checkpoint, resumes it, and confirms
 that it ends bit-identical to the same run uninterrupted.
 
-See docs/parity.md.
+See docs/studies/sb3-parity.md.
 """
 from __future__ import annotations
 
@@ -84,7 +84,7 @@ def cmd_sb3(args: argparse.Namespace) -> int:
     try:
         import _sb3
     except ImportError as e:  # pragma: no cover
-        return _die(f"cannot import benchmarks/_sb3.py ({e})")
+        return _die(f"cannot import studies/sb3-parity/_sb3.py ({e})")
     try:
         import stable_baselines3  # noqa: F401
         import torch  # noqa: F401
@@ -398,8 +398,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_plot(systems, out / "parity.png")
     lines = ["# mcrl vs stable-baselines3: learning dynamics at identical settings", "",
-             "Made by `python benchmarks/parity_sb3.py compare` (see docs/parity.md). Values are read from each "
-             "run's `metrics.csv` row at the step (means over that log interval's gradient steps) and `eval.csv`; "
+             "Made by `python studies/sb3-parity/parity_sb3.py compare` (see docs/studies/sb3-parity.md). "
+             "Values are read from each run's `metrics.csv` row at the step (means over that log interval's "
+             "gradient steps) and `eval.csv`; "
              "a run that has not reached a step has no value there (—), and the mean is over the runs that have "
              "one (n= says how many when not all).", "",
              *_settings_note(systems), "", "![parity](parity.png)", "", "## Runs", "", *_runs_list(systems), "",

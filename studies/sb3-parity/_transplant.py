@@ -327,7 +327,7 @@ def _buffer_from_sb3(rb, model) -> dict:
 
 
 def load_sb3_checkpoint(ckpt: Path, cfg):
-    """(ParitySAC, episodes so far) from an SB3 parity checkpoint (``benchmarks/_sb3.py``'s model.zip,
+    """(ParitySAC, episodes so far) from an SB3 parity checkpoint (``studies/sb3-parity/_sb3.py``'s model.zip,
     replay_buffer.pkl, state.pkl). Pickles: load only checkpoints this project's scripts wrote."""
     import pickle
 

@@ -3,20 +3,21 @@ under mcrl and under stable-baselines3 (SB3), with fresh random streams: whose i
 
 Subcommands (run from the repository root; needs the ``bench`` extra)::
 
-    python benchmarks/transplant.py continue --from CKPT --system {mcrl,sb3} --stream K [--steps 20000] --out DIR
-    python benchmarks/transplant.py check --from MCRL_CKPT [--sb3-from SB3_CKPT]
-    python benchmarks/transplant.py summary DIR... [--reference LABEL=RUN_DIR] [--out table.md]
+    python studies/sb3-parity/transplant.py continue --from CKPT --system {mcrl,sb3} --stream K [--steps 20000] \
+        --out DIR
+    python studies/sb3-parity/transplant.py check --from MCRL_CKPT [--sb3-from SB3_CKPT]
+    python studies/sb3-parity/transplant.py summary DIR... [--reference LABEL=RUN_DIR] [--out table.md]
 
 ``CKPT`` is an mcrl checkpoint directory (``checkpoints/step_<N>/`` of today's format or commit 83e6d8d's) or an
-SB3 parity checkpoint (``sb3_checkpoints/step_<N>/`` of ``benchmarks/parity_sb3.py``; its run's config.json is
-looked up in it and up to two directories above, or given with ``--config``).
+SB3 parity checkpoint (``sb3_checkpoints/step_<N>/`` of ``studies/sb3-parity/parity_sb3.py``; its run's config.json
+is looked up in it and up to two directories above, or given with ``--config``).
 
 ``continue`` writes DIR as a run directory in mcrl's format (config.json, metrics.csv with a row every 1,000
 steps, eval.csv, final_eval.json) plus transplant.json (origin, system, stream, steps, versions); stream K seeds
 every random stream of the continuation (``stream_seed(K)``). mcrl continues through ``mcrl train --resume DIR``,
 SB3 through ``_sb3.py``'s ParitySAC. ``check`` verifies that the state moves exactly both ways and that one
 gradient step from it agrees; ``summary`` tabulates continuations. What moves, how each system continues, and
-the results: docs/parity.md, "Whose instability? The transplant test".
+the results: docs/studies/sb3-parity.md, "Whose instability? The transplant test".
 """
 from __future__ import annotations
 

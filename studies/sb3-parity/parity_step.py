@@ -8,12 +8,12 @@ batch of its buffer) and identical Gaussian noise (mcrl's, handed to SB3's ``Nor
 this process only), on the batch and on a saturating variant (the actor's mean-head bias set to
 +-``--sat-mean``). Run from the repository root (needs ``pip install -e ".[bench]"``; one thread each side)::
 
-    python benchmarks/parity_step.py [--preset fetchpush-sac] [--seed 0] [--steps 3] [--sat-mean 7]
-                                     [--set key=value ...] [--checkpoint RUN_DIR[/checkpoints/step_N]]
-                                     [--json out.json]
+    python studies/sb3-parity/parity_step.py [--preset fetchpush-sac] [--seed 0] [--steps 3] [--sat-mean 7]
+                                             [--set key=value ...] [--checkpoint RUN_DIR[/checkpoints/step_N]]
+                                             [--json out.json]
 
 Exit status 1 if ``sb3-exact`` or ``mcrl-eps`` disagree beyond the tolerances below. The method in full and the
-results: docs/parity.md, "One gradient step, side by side".
+results: docs/studies/sb3-parity.md, "One gradient step, side by side".
 """
 from __future__ import annotations
 

@@ -7,13 +7,13 @@ where in its episode a sampled transition lies; and, for relabelled transitions,
 step from the transition's own (over the transitions whose goal matches exactly one step's next achieved goal).
 Run from the repository root (needs ``pip install -e ".[bench]"``)::
 
-    python benchmarks/parity_her.py [--preset fetchpush-sac] [--episodes 200] [--batches 400] [--seed 0]
-                                    [--alpha 0.001]
+    python studies/sb3-parity/parity_her.py [--preset fetchpush-sac] [--episodes 200] [--batches 400] [--seed 0]
+                                            [--alpha 0.001]
 
 Prints one JSON object (with each histogram pair's total-variation distance and the p-value of a chi-square test
 of homogeneity); exit status 1 if the mean reward of relabelled or of original transitions differs by more than 4
-standard errors (of the difference) or a histogram test gives p < ``--alpha``. Results: docs/parity.md, "HER
-sampling, side by side".
+standard errors (of the difference) or a histogram test gives p < ``--alpha``. Results: docs/studies/sb3-parity.md,
+"HER sampling, side by side".
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Copy the small files of every finished run of an experiment into a directory that is committed.
 
-    python benchmarks/sync_runs.py SRC_EXP DEST_EXP [--machine "AMD EPYC, family 25 model 17, 2 cores"]
+    python scripts/sync_runs.py SRC_EXP DEST_EXP [--machine "AMD EPYC, family 25 model 17, 2 cores"]
 
 For each `SRC_EXP/runs/<name>/` with a `done` marker: config.json, metrics.csv, eval.csv, final_eval.json,
 peer.json and done go to `DEST_EXP/runs/<name>/` (never checkpoints, buffers or TensorBoard events);

@@ -1,6 +1,6 @@
 """Compare a short re-run of a committed run with the committed rows: does a re-run give the same numbers?
 
-    python benchmarks/rerun_check.py COMMITTED_RUN RERUN_RUN [--machine TEXT] [--out FILE.json]
+    python scripts/rerun_check.py COMMITTED_RUN RERUN_RUN [--machine TEXT] [--out FILE.json]
 
 Every metrics.csv and eval.csv row of the re-run (made with the same commit and config, usually with a smaller
 ``--steps``) is matched by step with the committed run's row, and every column is compared except the wall-clock
@@ -13,11 +13,10 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import math
 import sys
 from pathlib import Path
-
-from _common import write_json
 
 WALL_CLOCK = ("time_s", "steps_per_s")
 EVAL_COLUMNS_IN_METRICS = ("eval_success_rate", "eval_mean_return")
@@ -88,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {col}: max |diff| {c['max_abs_diff']:.3g}, first at step {c['first_diff_step']}")
     print("identical" if res["identical"] else "DIFFERENT")
     if a.out:
-        write_json(a.out, res, indent=1)
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(res, indent=1) + "\n")
     return 0 if res["identical"] else 1
 
 
