@@ -7,7 +7,7 @@
 #     WORKERS=N runs at once (default 1; `--threads-per-run 1` does not keep a run to one thread on jax 0.10.2, so
 #     one run uses both cores: on the 2-core Zen 4 machine two runs went at about half speed each, so one at a time
 #     finishes each run in half the time for about 8% fewer steps in all, and a run fits in one session, where a
-#     machine that changes between sessions loses the run in progress; docs/intrinsic.md has the numbers)
+#     machine that changes between sessions loses the run in progress; docs/studies/intrinsic-runs.md has the numbers)
 #   bash docs/intrinsic/fetchpush/run.sh sync     # copy finished runs' small files here (then git commit them)
 #   bash docs/intrinsic/fetchpush/run.sh status
 #   bash docs/intrinsic/fetchpush/run.sh stop     # SIGTERM the sweep: the run in progress saves a checkpoint at its

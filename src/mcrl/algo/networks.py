@@ -3,7 +3,7 @@
 Every layer is drawn by `init`: "torch" (the default) as torch's `nn.Linear` draws it, weights and biases
 from U(-1/sqrt(fan_in), 1/sqrt(fan_in)), as in stable-baselines3 and the thesis' code; "flax" is Flax's own
 default (LeCun-normal weights, variance 1/fan_in, zero biases). The choice matters: with Flax's default,
-mcrl's critics drifted upward on FetchPush where stable-baselines3's settled (docs/parity.md).
+mcrl's critics drifted upward on FetchPush where stable-baselines3's settled (docs/studies/sb3-parity.md).
 
 Every layer's matmul runs at `matmul_precision`: "float32" (the default) is a true float32 matmul, Flax's Dense
 with `precision=HIGHEST` on its dot_general (and so on the backward pass's dots): JAX's default precision is
