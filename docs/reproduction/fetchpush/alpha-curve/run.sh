@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Issue 50: the rest of the thesis' FetchPush alpha curve, fetchpush-sacmc-{0.4,0.6,0.8,1.0} seeds 0-5 (150,000
+# steps, 100-episode final evaluations), from a clone of COMMIT: the commit of the reproduction's SAC and SAC-MC 0.2
+# arms (../main) they are compared with, so every arm of the curve comes from one code version (issue 49 kept those
+# arms: docs/studies/sac-baseline/README.md). Seed-major order, so a partial curve has the same seeds at every alpha.
+#
+#   bash docs/reproduction/fetchpush/alpha-curve/run.sh start   # clone + install (once), then start or resume
+#     WORKERS=N runs at once (default 1, one thread each); SEEDS=N seeds 0..N-1 of each alpha (default 6)
+#   bash docs/reproduction/fetchpush/alpha-curve/run.sh sync    # finished runs' small files here (then commit)
+#   bash docs/reproduction/fetchpush/alpha-curve/run.sh status
+#   bash docs/reproduction/fetchpush/alpha-curve/run.sh stop    # SIGTERM: the run in progress saves and stops
+set -euo pipefail
+HERE="$(cd "$(dirname "$0")" && pwd)"
+REPO="$(cd "$HERE/../../../.." && pwd)"
+COMMIT="$(cat "$HERE/COMMIT")"
+WORK="${WORK:-/work/repro/alpha-curve}"
+CODE="/work/repro/mcrl-$COMMIT"
+. "$REPO/docs/background-runs.sh"
+SWEEP="sweep .*--exp $WORK( |\$)"
+
+case "${1:-status}" in
+  sync)
+    sync_runs "$CODE/.venv/bin/python" "$REPO" "$WORK" "$HERE"
+    check_not_ignored "$REPO" "$HERE"/runs/*/config.json ;;
+  status)
+    arm_status alpha-curve "$WORK" "$HERE" ;;
+  stop)
+    pkill -TERM -f "$SWEEP" || { echo "no sweep running"; exit 0; }
+    while pgrep -f "$SWEEP" > /dev/null; do sleep 2; done; echo "stopped" ;;
+  start)
+    install_code "$REPO" "$CODE" "$COMMIT" bench
+    restore_runs "$HERE" "$WORK"
+    if pgrep -f "$SWEEP" > /dev/null; then echo "sweep already running (log $WORK.log)"; exit 0; fi
+    (trap '' HUP; "$CODE/.venv/bin/mcrl" sweep --preset fetchpush-sac --alphas 0.4,0.6,0.8,1.0 --seeds "${SEEDS:-6}" \
+       --workers "${WORKERS:-1}" --threads-per-run 1 --exp "$WORK" --no-progress) >> "$WORK.log" 2>&1 &
+    echo "started the alpha-curve sweep (log $WORK.log)"
+    [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" \
+      "mcrl sweep --preset fetchpush-sac --alphas 0.4,0.6,0.8,1.0 --seeds ${SEEDS:-6} --workers ${WORKERS:-1} --threads-per-run 1 --exp EXP" \
+      "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.4 --seed N  (or 0.6, 0.8, 1.0)" ;;
+  *) echo "usage: $0 start|stop|sync|status" >&2; exit 2 ;;
+esac
