@@ -14,19 +14,6 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 if importlib.util.find_spec("mcrl") is None and (REPO_ROOT / "src" / "mcrl").is_dir():
     sys.path.insert(0, str(REPO_ROOT / "src"))
 
-#: One thread for XLA and for torch's OpenMP: for scripts that run beside long experiments. On jax 0.10.2 the
-#: XLA flags do not keep XLA to one core (`xla_threads.py`).
-ONE_THREAD = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
-              "OMP_NUM_THREADS": "1"}
-
-
-def one_thread() -> None:
-    """Limit XLA and torch to one thread each unless the caller's environment says otherwise; call it before
-    jax or torch is imported."""
-    for k, v in ONE_THREAD.items():
-        os.environ.setdefault(k, v)
-
-
 def usable_cores() -> int:
     """The cores this process may run on (its affinity mask where there is one)."""
     if hasattr(os, "sched_getaffinity"):
