@@ -3,13 +3,13 @@
     python benchmarks/vmap_equivalence.py VMAP_EXP LOCAL_EXP [--json out.json]
 
 Both arguments are experiment directories of `mcrl sweep` over the same grid (same preset, alphas and seeds),
-one per backend, e.g. (the check in docs/performance.md)::
+one per backend, e.g. (the check in docs/studies/vmap-whole-runs.md)::
 
     mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 3 --backend vmap --exp EXP/vmap
     mcrl sweep --preset fetchreach-sacmc --alphas 0,0.2 --seeds 3 --backend local --exp EXP/local
 
-Runs are not compared step for step (float reassociation makes their trajectories part; docs/performance.md,
-"Whole runs"), but by outcome. Per run (matched by alpha and seed between the backends) the script reads the final evaluation's success and return and the area under the
+Runs are not compared step for step (float reassociation makes their trajectories part;
+docs/studies/vmap-whole-runs.md), but by outcome. Per run (matched by alpha and seed between the backends) the script reads the final evaluation's success and return and the area under the
 evaluation curve (mean success over the evaluations during training, which separates fast from slow learners
 even when every run ends at 1.0), and prints, per configuration and over all pairs, the mean of each backend and
 the paired difference vmap - local with a 95% bootstrap interval over the pairs. An interval containing 0 means
