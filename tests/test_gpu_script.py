@@ -18,7 +18,7 @@ import analyse  # noqa: E402
 def dry_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("gpu-dry-run")
     proc = subprocess.run(["bash", str(GPU / "run.sh"), "dry-run", str(out)], capture_output=True, text=True,
-                          env={**os.environ, "PY": sys.executable}, timeout=600)
+                          env={**os.environ, "PY": sys.executable}, timeout=1200)
     doc = json.loads((out / "gpu-dry-run.json").read_text())
     return proc, doc
 
