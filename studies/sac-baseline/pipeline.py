@@ -4,6 +4,7 @@ learning switched off, driven by the same fixed policy.
     python studies/sac-baseline/pipeline.py run --system mcrl|sb3 --policy random|RUN_DIR[@STEP] --seed N \\
         [--steps 20000] --out FILE.json
     python studies/sac-baseline/pipeline.py table FILE.json... [--from 1000]
+    python studies/sac-baseline/pipeline.py resets [--seeds 10] [--resets 2000]
 
 `run` trains nothing. mcrl's side is mcrl's own loop (`mcrl.run.trainer.train_runs`, so its warm-up, act / step /
 store / sample order, episode ends and seeding) with a learner that only draws the replay batch each step and
@@ -205,6 +206,27 @@ def cmd_table(a) -> int:
     return 0
 
 
+def cmd_resets(a) -> int:
+    """Do mcrl's per-episode seeded resets start episodes like SB3's (one seed, then unseeded resets)?"""
+    from mcrl.config import resolve_config
+    from mcrl.envs import episode_seed, make_env
+    from mcrl.run.evaluation import TRAIN_STREAM
+
+    env = make_env(resolve_config("fetchpush-sac"))
+
+    def near(obs) -> bool:
+        return bool(np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"]) < 0.05)
+
+    per_episode, seed_once = [], []
+    for seed in range(a.seeds):
+        per_episode += [near(env.reset(seed=episode_seed(seed, TRAIN_STREAM, i))[0]) for i in range(a.resets)]
+        seed_once += [near(env.reset(seed=seed)[0])] + [near(env.reset()[0]) for _ in range(a.resets - 1)]
+    for name, x in (("per-episode seeds (mcrl)", per_episode), ("one seed, then unseeded (SB3)", seed_once)):
+        p = float(np.mean(x))
+        print(f"{name}: {p:.4f} +- {np.sqrt(p * (1 - p) / len(x)):.4f} of {len(x)} episodes start within 5 cm")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -220,8 +242,11 @@ def main(argv=None) -> int:
     t.add_argument("files", nargs="+")
     t.add_argument("--from", dest="start", type=int, default=1000,
                    help="per-run means over the rows after this env step (each row: the EVERY steps up to it)")
+    z = sub.add_parser("resets", help="the share of episodes starting within 5 cm, both ways of resetting")
+    z.add_argument("--seeds", type=int, default=10)
+    z.add_argument("--resets", type=int, default=2000)
     a = p.parse_args(argv)
-    return cmd_run(a) if a.cmd == "run" else cmd_table(a)
+    return {"run": cmd_run, "table": cmd_table, "resets": cmd_resets}[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@
 #   bash docs/studies/sac-baseline/early/run.sh start   # clone + install (once), then start or resume both chains
 #   bash docs/studies/sac-baseline/early/run.sh sync    # finished runs' small files into mcrl/ and sb3/ here
 #   bash docs/studies/sac-baseline/early/run.sh status
-#   bash docs/studies/sac-baseline/early/run.sh table   # the early-course table (docs/parity.md), from what is here
+#   bash docs/studies/sac-baseline/early/run.sh table   # the early-course table (docs/studies/sac-baseline/README.md), from what is here
 set -euo pipefail
 HERE="$(cd "$(dirname "$0")" && pwd)"
 REPO="$(cd "$HERE/../../../.." && pwd)"

@@ -1,5 +1,5 @@
-"""The early-course table of issue 49 item 3 (docs/parity.md): mcrl's SAC with each tanh correction beside
-stable-baselines3's SAC over the first 20,000 steps of FetchPush, from committed run directories.
+"""The early-course table of issue 49 item 3 (docs/studies/sac-baseline/README.md): mcrl's SAC with each tanh
+correction beside stable-baselines3's SAC over the first 20,000 steps of FetchPush, from committed run directories.
 
     python docs/studies/sac-baseline/early/table.py docs/studies/sac-baseline/early
 
@@ -63,24 +63,24 @@ def main(here: Path) -> int:
     }
     per = {a: {q: np.array([window(c, q[0], q[1], q[2]) for c in rs]) for q in QUANTITIES}
            for a, rs in arms.items()}
-    label = lambda q: f"{q[0]} {q[1] // 1000}k-{q[2] // 1000}k" if q[1] != q[2] else f"{q[0]} at {q[1] // 1000}k"  # noqa
-    print("| arm | seeds | " + " | ".join(label(q) for q in QUANTITIES) + " |")
-    print("|---|---|" + "---|" * len(QUANTITIES))
-    for a, rs in arms.items():
-        cells = []
-        for q in QUANTITIES:
-            v = per[a][q]
-            v = v[np.isfinite(v)]
-            cells.append("-" if v.size == 0 else f"{v.mean():.{q[3]}f}")
-        print(f"| {a} | {len(rs)} | " + " | ".join(cells) + " |")
+    def label(q):
+        return f"`{q[0]}`, {q[1] // 1000}k-{q[2] // 1000}k" if q[1] != q[2] else f"`{q[0]}` at {q[1] // 1000}k"
+
+    def finite(v):
+        return v[np.isfinite(v)]
+
+    print("| quantity | " + " | ".join(f"{a} ({len(rs)})" for a, rs in arms.items()) + " |")
+    print("|---|" + "---|" * len(arms))
+    for q in QUANTITIES:
+        cells = [f"{finite(per[a][q]).mean():.{q[3]}f}" if finite(per[a][q]).size else "-" for a in arms]
+        print(f"| {label(q)} | " + " | ".join(cells) + " |")
     print()
     print("| quantity | mcrl arm | SB3 arm | difference [95% CI] | rank-sum p (two-sided) |")
     print("|---|---|---|---|---|")
     for q in QUANTITIES:
         for m in ("mcrl exact", "mcrl epsilon", "mcrl exact (committed 0-11)"):
             for s in ("SB3 (re-run)", "SB3 (committed 0-5)"):
-                x, y = per[m][q], per[s][q]
-                x, y = x[np.isfinite(x)], y[np.isfinite(y)]
+                x, y = finite(per[m][q]), finite(per[s][q])
                 if x.size < 3 or y.size < 3:
                     continue
                 est, lo, hi = mean_difference_ci(x, y)
