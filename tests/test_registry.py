@@ -97,6 +97,8 @@ def _sacmc(docs: Path, exp: str, *extra: str, registry: bool = True):
 
 
 def test_the_family_grows_where_the_registry_says_and_nowhere_else(repo: Path) -> None:
+    (repo / "alpha").mkdir()
+    (repo / "alpha" / "run.sh").write_text("mcrl sweep ...\n")  # declared and set up, no run yet: 0 seeds
     before = _sacmc(repo, "main")
     _sweep(repo / "alpha", {"a0.4": (0.4, {}, [s + 0.02 for s in SAC])})  # the declared alpha arm gets its runs
     after, elsewhere = _sacmc(repo, "main"), _sacmc(repo, "arms", "main")

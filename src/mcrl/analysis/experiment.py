@@ -129,9 +129,10 @@ def _sweep_runs(d: Path, prefix: str = "") -> tuple[dict[str, Any], list[Run]]:
     return sweep, runs
 
 
-def read_runs(path: Path) -> list[Run]:
+def read_runs(path: Path, empty_ok: bool = False) -> list[Run]:
     """The runs of a directory: an experiment directory, a run directory, a directory of run directories, or
-    one whose ``runs/`` holds them (a reference arm laid out like an experiment, without sweep.json)."""
+    one whose ``runs/`` holds them (a reference arm laid out like an experiment, without sweep.json). A directory
+    that holds none is an error, or no runs with ``empty_ok`` (a registry arm whose runs have not started)."""
     if not path.is_dir():
         raise MCRLError(f"--with {path}: no such directory: give an experiment directory, a run directory "
                         "or a directory of run directories")
@@ -143,6 +144,8 @@ def read_runs(path: Path) -> list[Run]:
         return [x for x in sorted(d.iterdir()) if _is_run_dir(x)] if d.is_dir() else []
     # its run directories, or those of its runs/ (an experiment's layout without sweep.json, e.g. a reference arm)
     subdirs = run_dirs(path) or run_dirs(path / RUNS)
+    if not subdirs and empty_ok:
+        return []
     if not subdirs:
         raise MCRLError(f"--with {path} holds no run (no sweep.json, and no config.json, eval.csv or peer.json in "
                         f"it, its subdirectories or its {RUNS}/): give an experiment or run directory")

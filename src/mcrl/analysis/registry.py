@@ -224,7 +224,7 @@ class ArmRuns:
 
     def _runs(self, d: Path) -> list[Run]:
         if d not in self._dirs:
-            self._dirs[d] = read_runs(d) if d.is_dir() else []  # not run yet: an arm with 0 seeds
+            self._dirs[d] = read_runs(d, empty_ok=True) if d.is_dir() else []  # not run yet: an arm with 0 seeds
         return self._dirs[d]
 
     def runs(self, arm: ArmSpec) -> list[Run]:
