@@ -2,7 +2,7 @@
 bad input, run files shipped from a worker.
 
 Tiny runs (300 steps, small networks); the sweeps run through the CLI in subprocesses, as a user
-would run them. The whole file takes about 3-4 minutes on 2 cores.
+would run them. The whole file takes about 2 minutes on 2 cores.
 """
 import csv
 import json
@@ -91,27 +91,6 @@ def test_local_sweep_writes_the_experiment_directory(local_exp):
     loaded = load_experiment(exp)  # the format `mcrl report` reads
     assert [g.key for g in loaded.configs] == ["alpha=0", "alpha=0.2"]
     assert all(r.status == "finished" for r in loaded.runs)
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(900)  # Ray's start-up and two runs: minutes on a busy 2-core machine
-def test_ray_backend_gives_the_same_runs(local_exp, tmp_path):
-    exp, _ = local_exp
-    ray_exp = tmp_path / "ray"
-    # one run pretends its worker cannot see EXP: it trains in a temporary directory and ships its files back
-    # SAC-MC's two seeds (the alpha-0 runs take the same code path through Ray; the local sweep checks them)
-    res = _run_cli(_sweep_args(ray_exp, "0.2", "2", "--backend", "ray", "--workers", "2"),
-                   env={"MCRL_SWEEP_SHIP_FILES": "a0.2-s1"}, timeout=850)
-    assert res.returncode == 0, res.stdout + res.stderr
-    assert "start a0.2-s1 (pid" in res.stdout and "files shipped back" in res.stdout
-    names = ["a0.2-s0", "a0.2-s1"]
-    for name in names:
-        _same_run(exp / "runs" / name, ray_exp / "runs" / name)
-    shipped = ray_exp / "runs" / "a0.2-s1"
-    assert (shipped / "checkpoints" / "latest").read_text().strip() == f"step_{STEPS:09d}"
-    assert list(shipped.glob("events.out.tfevents.*"))
-    runs = [json.loads((d / "sweep.json").read_text())["runs"] for d in (exp, ray_exp)]
-    assert [r for r in runs[0] if r["name"] in names] == runs[1]
 
 
 @pytest.mark.slow
@@ -262,18 +241,21 @@ def _logged(run) -> int:
 
 @pytest.mark.slow
 @pytest.mark.timeout(1200)  # two Ray start-ups and 2 + 1 runs: ~4 min on a quiet 2-core machine
-def test_a_killed_ray_worker_resumes_to_the_same_numbers(local_exp, tmp_path):
-    """kill -9 a Ray worker after its run's first checkpoint: the driver reports the run failed and finishes the
-    other; the same command again resumes the killed run from its checkpoint, with the uninterrupted numbers."""
+def test_ray_backend_ships_files_and_resumes_a_killed_worker(local_exp, tmp_path):
+    """The Ray backend gives the local backend's runs: a0.2-s1 pretends its worker cannot see EXP (it trains in a
+    temporary directory and ships its files back); a0.2-s0's worker is killed with -9 after its first checkpoint,
+    the driver reports that run failed and finishes the other, and the same command again resumes the killed run
+    from its checkpoint. Both end with the uninterrupted local sweep's numbers and sweep.json entries."""
     ref, _ = local_exp
-    exp = tmp_path / "ray-killed"
+    exp = tmp_path / "ray"
     args = _sweep_args(exp, "0.2", "2", "--backend", "ray", "--workers", "2")  # a0.2-s0 and a0.2-s1, as in ref
+    victim, shipped = "a0.2-s0", "a0.2-s1"  # the shipped run writes nothing under EXP before it ends
     proc = subprocess.Popen(CLI + args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
+                            start_new_session=True, env={**os.environ, "MCRL_SWEEP_SHIP_FILES": shipped})
     out = _Lines(proc)
     try:
-        _wait_for(lambda: list(exp.glob("runs/*/checkpoints/latest")), proc, "a first checkpoint", timeout=600)
-        victim = next(exp.glob("runs/*/checkpoints/latest")).parent.parent.name
+        _wait_for(lambda: (exp / "runs" / victim / "checkpoints" / "latest").exists(), proc, "a first checkpoint",
+                  timeout=600)
         start_line = re.compile(rf"start {re.escape(victim)} \(pid (\d+) on ")
         _wait_for(lambda: start_line.search(out.text()), proc, "the victim's start line")
         os.kill(int(start_line.search(out.text()).group(1)), signal.SIGKILL)  # the Ray worker process
@@ -282,14 +264,21 @@ def test_a_killed_ray_worker_resumes_to_the_same_numbers(local_exp, tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    assert proc.returncode == 1 and f"FAILED {victim}" in out.text(), out.text()
+    text = out.text()
+    assert proc.returncode == 1 and f"FAILED {victim}" in text, text
     assert not (exp / "runs" / victim / "done").exists()
+    assert f"start {shipped} (pid" in text and "files shipped back" in text, text
+    assert (exp / "runs" / shipped / "checkpoints" / "latest").read_text().strip() == f"step_{STEPS:09d}"
+    assert list((exp / "runs" / shipped).glob("events.out.tfevents.*"))
 
     res = _run_cli(args, timeout=600)  # the same command again
     assert res.returncode == 0, res.stdout + res.stderr
     assert re.search(rf"queued {re.escape(victim)} \(resumes from step [1-9]\d*\)", res.stdout), res.stdout
-    for name in ("a0.2-s0", "a0.2-s1"):
+    names = [victim, shipped]
+    for name in names:
         _same_run(ref / "runs" / name, exp / "runs" / name)
+    runs = [json.loads((d / "sweep.json").read_text())["runs"] for d in (ref, exp)]
+    assert [r for r in runs[0] if r["name"] in names] == runs[1]
 
 
 def _closed_port():
