@@ -17,6 +17,12 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _OWN_CACHE = tempfile.mkdtemp(prefix="mcrl-tests-jax-cache-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWN_CACHE
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")  # CPU compiles here take < 1 s too
+    # JAX writes an entry in place; with a size limit it takes a file lock around every read and write, so that no
+    # process reads an entry another is still writing (filelock comes with Ray, a test dependency)
+    import importlib.util
+
+    if importlib.util.find_spec("filelock") is not None:
+        os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(8 << 30))
 
 # The fault tests play a user's Ctrl-C. A suite started as a background job (`cmd &` in a script) inherits SIGINT
 # ignored and would pass that on to the runs it starts, which then rightly keep ignoring it (mcrl.run.stop).

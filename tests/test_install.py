@@ -153,7 +153,8 @@ def test_pip_install_keeps_existing_numpy_and_matplotlib(tmp_path):
     shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(
         ".git", ".venv", "runs", "experiments", "build", "*.egg-info", "__pycache__", ".pytest_cache"))
     env = {k: v for k, v in os.environ.items()
-           if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME", "PIP_CONSTRAINT", "PIP_REQUIREMENT")}
+           if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME", "PIP_CONSTRAINT", "PIP_REQUIREMENT")
+           and not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE"))}  # a user's, not the suite's
     env["MUJOCO_GL"] = env.get("MUJOCO_GL", "egl")
     venv = tmp_path / "env"
     # A fresh environment (no --system-site-packages) with the researcher's own numpy and matplotlib.
