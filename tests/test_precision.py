@@ -216,7 +216,8 @@ def test_sac_bfloat16_learns_fetchreach(tmp_path):
 
     Measured (seed 0, Intel Xeon family 6 model 167), success every 500 steps from 3,500: bfloat16 0, 0.1, 0.2,
     0.4, 1.0 (5,500), 1.0 ...; float32 at the same settings 0, 0.1, 0.3, 0.5, 1.0 (5,500). A broken update (the
-    critics' target bootstrapped from s instead of s') reaches at most 0.7 through 7,000 steps (0.6 at 5,000, 0.7 at 6,500)."""
+    critics' target bootstrapped from s instead of s') reaches at most 0.7 through 7,000 steps (0.6 at 5,000, 0.7
+    at 6,500)."""
     from mcrl.run.rundir import read_rows
     from mcrl.run.trainer import train
 
