@@ -8,7 +8,9 @@
 #     WORKERS=N runs at once (default 1, one thread each); SEEDS=N seeds 0..N-1 of each alpha (default 6)
 #   bash docs/reproduction/fetchpush/alpha-curve/run.sh sync    # finished runs' small files here (then commit)
 #   bash docs/reproduction/fetchpush/alpha-curve/run.sh status
-#   bash docs/reproduction/fetchpush/alpha-curve/run.sh stop    # SIGTERM: the run in progress saves and stops
+#   bash docs/reproduction/fetchpush/alpha-curve/run.sh stop    # SIGTERM to the sweep: it stops. At COMMIT the sweep
+#     ends without its run saving (today's mcrl saves at the episode's end; checked 2026-11-28 with a FetchReach sweep
+#     started as `start` starts it), so a stop loses the run's work since its last checkpoint (every 10,000 steps)
 set -euo pipefail
 HERE="$(cd "$(dirname "$0")" && pwd)"
 REPO="$(cd "$HERE/../../../.." && pwd)"
