@@ -144,9 +144,9 @@ def read_runs(path: Path, empty_ok: bool = False) -> list[Run]:
         return [x for x in sorted(d.iterdir()) if _is_run_dir(x)] if d.is_dir() else []
     # its run directories, or those of its runs/ (an experiment's layout without sweep.json, e.g. a reference arm)
     subdirs = run_dirs(path) or run_dirs(path / RUNS)
-    if not subdirs and empty_ok:
-        return []
     if not subdirs:
+        if empty_ok:
+            return []
         raise MCRLError(f"--with {path} holds no run (no sweep.json, and no config.json, eval.csv or peer.json in "
                         f"it, its subdirectories or its {RUNS}/): give an experiment or run directory")
     return [_read_run(d, f"{path.name}/{d.name}", None, None, {}, path) for d in subdirs]
