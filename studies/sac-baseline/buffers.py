@@ -212,14 +212,14 @@ def cmd_gap(a) -> int:
             logged = _logged(Path(d) / "metrics.csv", a.start, a.steps)
             n_real = BATCH - N_HER[system]
             # what the run's batches would carry with no start at the goal and mcrl's 205 relabelled rows
-            adjusted = logged - n_real / BATCH * gain * w + (N_HER["mcrl"] - N_HER[system]) / BATCH * a.row_gap
-            rows.append((cfg["seed"], logged, w, adjusted))
+            rows_only = logged + (N_HER["mcrl"] - N_HER[system]) / BATCH * a.row_gap
+            rows.append((cfg["seed"], logged, w, rows_only, rows_only - n_real / BATCH * gain * w))
         arms[name] = np.array(sorted(rows))
         print(f"{name}: seeds {[int(r[0]) for r in arms[name]]}; weighted start-at-goal share "
               f"{arms[name][:, 2].mean():.4f}")
     x, y = arms["mcrl"], arms["SB3"]
     for j, what in ((1, "logged batch reward"), (2, "weighted start-at-goal share"),
-                    (3, "batch reward less starts at goal and row count")):
+                    (3, "batch reward less the row count"), (4, "batch reward less row count and starts at goal")):
         est, lo, hi = mean_difference_ci(x[:, j], y[:, j])
         print(f"| {what} | {x[:, j].mean():.4f} ({len(x)}) | {y[:, j].mean():.4f} ({len(y)}) | {est:+.4f} "
               f"[{lo:+.4f}, {hi:+.4f}] | {rank_sum_test(x[:, j], y[:, j], 'two-sided'):.2g} |")
