@@ -91,16 +91,20 @@ def per_episode(buf: dict) -> dict[str, np.ndarray]:
     }
 
 
+def _gradient_steps(steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each gradient step with a finished episode to draw from (env steps LEARNING_STARTS + 1..steps): the
+    episodes finished after storing that step, and the metrics row that logs it."""
+    s = np.arange(LEARNING_STARTS + 1, steps + 1)
+    s = s[s // T > 0]
+    return s // T, ((s - 1) // LOG_EVERY + 1) * LOG_EVERY
+
+
 def predicted_rows(ep: dict[str, np.ndarray], n_her: int, steps: int) -> dict[str, np.ndarray]:
     """Expected batch means per metrics row (env steps in (row - LOG_EVERY, row], from LEARNING_STARTS + 1)."""
     cum = {k: np.concatenate([[0.0], np.cumsum(ep[k])]) for k in ("real", "relabelled")}
-    s = np.arange(LEARNING_STARTS + 1, steps + 1)
-    done = s // T  # episodes finished after storing step s
-    ok = done > 0
-    s, done = s[ok], done[ok]
+    done, row = _gradient_steps(steps)
     real, relab = cum["real"][done] / done, cum["relabelled"][done] / done
     batch = ((BATCH - n_her) * real + n_her * relab) / BATCH
-    row = ((s - 1) // LOG_EVERY + 1) * LOG_EVERY
     rows = np.unique(row)
     mean = lambda v: np.array([v[row == r].mean() for r in rows])  # noqa: E731
     return {"step": rows, "batch": mean(batch), "real_part": mean((BATCH - n_her) * real / BATCH),
@@ -110,11 +114,8 @@ def predicted_rows(ep: dict[str, np.ndarray], n_her: int, steps: int) -> dict[st
 def episode_weights(n: int, steps: int, start: int = LOG_EVERY) -> np.ndarray:
     """Each episode's weight in the mean of the metrics rows >= ``start`` of the expected batch reward (rows
     weigh equally, the steps within a row equally, and a batch draws its finished episodes uniformly)."""
-    s = np.arange(LEARNING_STARTS + 1, steps + 1)
-    done = s // T
-    row = ((s - 1) // LOG_EVERY + 1) * LOG_EVERY
-    keep = (done > 0) & (row >= start)
-    s, done, row = s[keep], done[keep], row[keep]
+    done, row = _gradient_steps(steps)
+    done, row = done[row >= start], row[row >= start]
     w = np.zeros(n + 1)
     rows = np.unique(row)
     for r in rows:
