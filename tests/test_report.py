@@ -462,6 +462,12 @@ def test_arms_are_named_by_what_they_are_and_can_be_labelled(tmp_path: Path,
     assert "mc_alpha=0.2, mc_reduction=transition, mc_state=observation" in keys
     keys = [g.key for g in load_experiment(exp, [f"{variant}=SAC-MC, code variant"]).configs]
     assert set(keys) == {"alpha=0", "alpha=0.2", "SAC-MC, code variant"}
+    # a second unnamed sweep (the alpha curve beside the main arms): the sweeps' keys no longer name the arms, and
+    # the unnamed arms differ only in alpha, so they are named by their algorithm, not by the labelled variant's
+    # settings
+    curve = _experiment(tmp_path / "alpha-curve", {0.4: FINALS["alpha=0.2"]})
+    keys = [g.key for g in load_experiment(exp, [f"{variant}=SAC-MC, code variant", str(curve)]).configs]
+    assert set(keys) == {"SAC", "SAC-MC 0.2", "SAC-MC 0.4", "SAC-MC, code variant"}
 
     rc = main(["report", str(exp), "--with", f"{variant}=SAC-MC, code variant", "--out", str(tmp_path / "rep")])
     assert rc == 0, capsys.readouterr().err

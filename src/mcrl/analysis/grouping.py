@@ -125,10 +125,13 @@ def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str
         one_to_one = (all(len(s) == 1 and None not in s for s in sweep_keys)
                       and len({next(iter(s)) for s in sweep_keys}) == len(keys)
                       and len({r.source for k in unnamed for r in buckets[k]}) <= 1)
-        vary = _varying([settings[k] for k in keys if k in settings])
+        # An arm is told apart from the arms that share its kind of name: the unnamed from the unnamed, a user
+        # label's arms from each other; a labelled arm's settings must not lengthen every unnamed arm's name.
+        vary = {user: _varying([settings[k] for k in keys if k in settings and k[2] == user])
+                for user in dict.fromkeys(k[2] for k in keys)}
         for k, sk in zip(keys, sweep_keys):
-            parts = ", ".join(f"{v}={_fmt(settings[k].get(v))}" for v in vary) if k in settings else ""
-            if k in settings and not fam and set(vary) <= {"mc_alpha", "intrinsic"}:
+            parts = ", ".join(f"{v}={_fmt(settings[k].get(v))}" for v in vary[k[2]]) if k in settings else ""
+            if k in settings and not fam and set(vary[k[2]]) <= {"mc_alpha", "intrinsic"}:
                 parts = _algorithm(settings[k])  # only the reward differs: name the algorithm
             user = k[2]
             if user:  # the user's name; the settings too when one directory holds several configurations
