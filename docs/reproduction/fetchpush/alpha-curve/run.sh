@@ -53,11 +53,12 @@ case "${1:-status}" in
     (trap '' HUP; "$CODE/.venv/bin/mcrl" sweep --preset fetchpush-sac --alphas "$ALPHAS" --seeds "${SEEDS:-6}" \
        --workers "${WORKERS:-1}" --threads-per-run 1 --exp "$WORK" --no-progress) >> "$WORK.log" 2>&1 &
     echo "started the alpha-curve sweep (log $WORK.log)"
+    recorded="mcrl sweep --preset fetchpush-sac --alphas $ALPHAS --seeds ${SEEDS:-6} --workers ${WORKERS:-1} \
+--threads-per-run 1 --exp EXP"
     if [ "$ALPHAS" != "$ALL" ] && [ -f "$WORK/provenance.json" ]; then
-      record_extension "$WORK/provenance.json" "mcrl sweep --preset fetchpush-sac --alphas $ALPHAS --seeds ${SEEDS:-6} --workers ${WORKERS:-1} --threads-per-run 1 --exp EXP"
+      record_extension "$WORK/provenance.json" "$recorded"
     fi
-    [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" \
-      "mcrl sweep --preset fetchpush-sac --alphas $ALPHAS --seeds ${SEEDS:-6} --workers ${WORKERS:-1} --threads-per-run 1 --exp EXP" \
+    [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" "$recorded" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sacmc-0.4 --seed N  (or 0.6, 0.8, 1.0)" ;;
   *) echo "usage: $0 start|stop|sync|status" >&2; exit 2 ;;
 esac
