@@ -100,6 +100,15 @@ def test_stratified_iqm_ci(backend: str) -> None:
     assert stats.stratified_iqm_ci(scores, n_boot=500, seed=0) == out
 
 
+def test_stratified_iqm_ci_entries_are_independent(backend: str) -> None:
+    """An entry's interval is the same whatever other entries share the call (a report's arms finish one by one)."""
+    rng = np.random.default_rng(3)
+    x, other = rng.uniform(size=12), rng.uniform(size=3)
+    alone = stats.stratified_iqm_ci({"x": x}, n_boot=300, seed=0)["x"]
+    assert stats.stratified_iqm_ci({"other": other, "x": x}, n_boot=300, seed=0)["x"] == alone
+    assert stats.stratified_iqm_ci({"other": np.append(other, 0.9), "x": x}, n_boot=300, seed=0)["x"] == alone
+
+
 def test_stratified_ci_coverage(backend: str) -> None:
     """The stratified-bootstrap CI of the IQM of N(0, 1) covers 0 in most of 60 datasets (sanity check)."""
     rng = np.random.default_rng(0)

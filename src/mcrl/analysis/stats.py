@@ -214,21 +214,23 @@ def stratified_iqm_ci(
 
     ``score_dict`` maps a name to scores of shape (num_runs,) or (num_runs, num_tasks). Returns
     name -> (IQM, low, high). Runs are resampled within each task (rliable's StratifiedBootstrap).
+    Each entry is bootstrapped from its own ``seed``-seeded stream, so its interval does not move when
+    another entry is added, removed or gains a run.
     """
     scores = {k: _as_runs_by_tasks(v) for k, v in score_dict.items()}
     rly_metrics = _rly_metrics()
     lib = _rliable_library()
-    if lib is not None:
-        with _seeded_global_numpy(seed):
-            points, cis = lib.get_interval_estimates(
-                scores, lambda s: np.array([rly_metrics.aggregate_iqm(s)]), method="percentile",
-                reps=n_boot, confidence_interval_size=conf)
-        return {k: (float(np.ravel(points[k])[0]), float(cis[k][0, 0]), float(cis[k][1, 0])) for k in scores}
     out: dict[str, Interval] = {}
-    rng = np.random.default_rng(seed)
     for k, a in scores.items():
-        boot = _stratified_resample(a, rng, n_boot).reshape(n_boot, -1)
-        out[k] = (float(rly_metrics.aggregate_iqm(a)), *_percentiles(iqm(boot, axis=1), conf))
+        if lib is not None:
+            with _seeded_global_numpy(seed):
+                points, cis = lib.get_interval_estimates(
+                    {k: a}, lambda s: np.array([rly_metrics.aggregate_iqm(s)]), method="percentile",
+                    reps=n_boot, confidence_interval_size=conf)
+            out[k] = (float(np.ravel(points[k])[0]), float(cis[k][0, 0]), float(cis[k][1, 0]))
+        else:
+            boot = _stratified_resample(a, np.random.default_rng(seed), n_boot).reshape(n_boot, -1)
+            out[k] = (float(rly_metrics.aggregate_iqm(a)), *_percentiles(iqm(boot, axis=1), conf))
     return out
 
 
