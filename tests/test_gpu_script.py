@@ -118,3 +118,30 @@ def test_projection_splits_sets_into_measured_groups():
     assert analyse.project("fetchpush", [36], 150_000, 5000, 10, 100, figs, measured=12)["groups"] == [12, 12, 12]
     none = analyse.project("x", [4], 10, 5, 1, 1, {"steady_steps_per_s": None}, measured=4)
     assert none["total_h"] is None and none["train_h"] is None
+
+
+def test_only_runs_the_check_then_the_named_phases_and_shares_their_budget(tmp_path, monkeypatch):
+    import measure
+
+    m = measure.Measurement(tmp_path / "gpu.json", tmp_path / "work", 100.0, True, False, {})
+    calls: list = []
+    monkeypatch.setattr(m, "equivalence", lambda later: calls.append(("equivalence", later)) or
+                        m.doc.__setitem__("equivalence", {"passed": True}) or True)
+    monkeypatch.setattr(m, "throughput", lambda phase, later: calls.append((phase.name, later)))
+    monkeypatch.setattr(m, "projections", lambda: calls.append(("projections", None)))
+    assert m.run({"antmaze_group"}) == 0
+    ant = next(p for p in measure.TINY["phases"] if p.name == "antmaze_group")
+    # the equivalence check is shared against the named phase only, and no projection needs the missing groups
+    assert calls == [("equivalence", ant.share), ("antmaze_group", 0)]
+    calls.clear()
+    assert m.run() == 0
+    assert [c[0] for c in calls] == ["equivalence", *(p.name for p in measure.TINY["phases"]), "projections"]
+
+
+def test_only_rejects_an_unknown_phase_before_anything_runs(tmp_path, capsys):
+    import measure
+
+    with pytest.raises(SystemExit) as e:
+        measure.main(["--out", str(tmp_path / "gpu.json"), "--only", "fetchpush_single,antmaze"])
+    assert e.value.code == 2 and "unknown phase in --only: ['antmaze']" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

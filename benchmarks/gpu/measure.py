@@ -2,6 +2,7 @@
 
     python benchmarks/gpu/measure.py --out gpu.json [--budget-s 500]      # on the GPU machine (run.sh calls it)
     python benchmarks/gpu/measure.py --dry-run --out dry.json               # the same on the CPU at tiny sizes
+    python benchmarks/gpu/measure.py --out gpu.json --only fetchpush_single  # equivalence + the phases named
 
 Phases, each in child processes (`child.py`) stopped at its share of the budget, the JSON rewritten after each:
 
@@ -251,8 +252,10 @@ class Measurement:
         out["fetchpush"]["one_run_at_a_time_train_h"] = None if not single else 36 * 150_000 / single / 3600
         self.doc["projections"] = out
 
-    def run(self) -> int:
-        phases = self.sizes["phases"]
+    def run(self, only: set[str] | None = None) -> int:
+        """All phases, or the equivalence check and the throughput phases named in `only` (a second, shorter
+        window: the projections need every group, so they are left out)."""
+        phases = [p for p in self.sizes["phases"] if only is None or p.name in only]
         shares = [p.share for p in phases]
         if not self.equivalence(sum(shares)):
             self.save()
@@ -261,7 +264,8 @@ class Measurement:
         for i, phase in enumerate(phases):
             self.throughput(phase, sum(shares[i + 1:]))
             self.save()
-        self.projections()
+        if only is None:
+            self.projections()
         self.save()
         return 0 if not self.doc["errors"] and self.doc["equivalence"]["passed"] else 1
 
@@ -291,7 +295,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true", help="tiny sizes, any device")
     p.add_argument("--work", help="where the runs go (default: a temporary folder)")
     p.add_argument("--extra", help="a JSON file merged into the output (run.sh's install record)")
+    p.add_argument("--only", help="comma-separated throughput phases to run after the equivalence check "
+                   "(fetchpush_single, fetchpush_group, antmaze_group); default: all, with projections")
     a = p.parse_args(argv)
+    names = {ph.name for ph in FULL["phases"]}
+    only = None if not a.only else set(a.only.split(","))
+    if only is not None and not only <= names:
+        p.error(f"unknown phase in --only: {sorted(only - names)}; choose from {sorted(names)}")
     extra = json.loads(Path(a.extra).read_text()) if a.extra else {}
     # a dry run's phases end by their step caps (but for the single run's budget stop); its budget only bounds a
     # machine so loaded that they do not, so it is generous: the test suite runs beside other work
@@ -299,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(a.work or tempfile.mkdtemp(prefix="mcrl-gpu-"))
     m = Measurement(Path(a.out).absolute(), work, budget, a.dry_run, not a.dry_run, extra)
     try:
-        rc = m.run()
+        rc = m.run(only)
     except Exception as e:  # still leave the JSON
         import traceback
 

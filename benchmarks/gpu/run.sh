@@ -11,6 +11,8 @@
 #   timeout_s: 590   (the script ends itself by GPU_TOTAL_S=540 s: install, then measure.py's phases, each
 #                     stopped at its share of what is left; the JSON is rewritten after every phase)
 # Before it: commit, then `bash benchmarks/gpu/run.sh fetch-wheels` (it records HEAD in wheels/commit.txt).
+# A shorter second window: GPU_TOTAL_S=250 GPU_ONLY=fetchpush_single bash benchmarks/gpu/run.sh gpu (the
+# equivalence check, then only the phases named; no projections).
 # After it: the tool's files_at holds gpu.json, install.log and measure.log; give the machine back.
 #
 # The image has Python 3.12, jax 0.11 with CUDA 13, flax, optax, numpy, scipy, pandas, matplotlib, tensorboard,
@@ -80,7 +82,8 @@ gpu)
     budget=$(( ${GPU_TOTAL_S:-540} - ($(date +%s) - START) - 25 ))  # 25 s: the last phase's stop and the JSON
     set +e
     PYTHONUNBUFFERED=1 "$PY" $HERE/measure.py --out "$OUT/gpu.json" --budget-s "$budget" --work "$WORK" \
-        --extra "$WORK/install.json" 2>&1 | tee "$OUT/measure.log"
+        --extra "$WORK/install.json" \
+        ${GPU_ONLY:+--only "$GPU_ONLY"} 2>&1 | tee "$OUT/measure.log"
     rc=${PIPESTATUS[0]}
     echo "run.sh: exit $rc after $(( $(date +%s) - START )) s"
     exit "$rc" ;;
