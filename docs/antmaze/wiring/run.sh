@@ -26,7 +26,18 @@ case "${1:-status}" in
   report)
     "$REPO/.venv/bin/mcrl" report "$HERE" --out "$HERE/report" ;;
   render)
-    MUJOCO_GL="${MUJOCO_GL:-egl}" "$CODE/.venv/bin/mcrl" render "$WORK/runs/a0.2-s0" --episodes 1 --format mp4 \
+    # the environment's default camera stays put while the ant walks out of view: render a copy of the run whose
+    # config asks AntMaze (through env_kwargs, to gymnasium's AntEnv) for a top-down camera over the whole maze
+    TMP=$(mktemp -d); trap 'rm -rf "$TMP"' EXIT
+    cp -r "$WORK/runs/a0.2-s0/config.json" "$WORK/runs/a0.2-s0/checkpoints" "$TMP/"
+    "$CODE/.venv/bin/python" - "$TMP/config.json" <<'PY'
+import json, sys
+c = json.load(open(sys.argv[1]))
+c["env_kwargs"] = {**c["env_kwargs"], "default_camera_config": {"distance": 20.0, "elevation": -90.0,
+                                                                "azimuth": 90.0, "lookat": [0.0, 0.0, 0.0]}}
+json.dump(c, open(sys.argv[1], "w"), indent=1)
+PY
+    MUJOCO_GL="${MUJOCO_GL:-egl}" "$CODE/.venv/bin/mcrl" render "$TMP" --episodes 1 --format mp4 \
       --out "$HERE/episode.mp4" --no-progress ;;
   start)
     install_code "$REPO" "$CODE" "$COMMIT"
