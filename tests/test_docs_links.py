@@ -4,6 +4,8 @@ generated Markdown are checked for links only: their commands record what ran, a
 from __future__ import annotations
 
 import re
+import subprocess
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,19 +64,32 @@ def broken_links(path: Path, cache: dict[Path, set[str]]) -> list[str]:
     return bad
 
 
+def git_ignored(paths: list[str]) -> set[str]:
+    """The paths git ignores and does not track: they exist in this checkout only (a built venv, fetched wheels),
+    never in a fresh clone, so a doc must not name them as if they were there."""
+    if not paths or not (ROOT / ".git").exists():
+        return set()
+    out = subprocess.run(["git", "check-ignore", "--stdin"], cwd=ROOT, input="\n".join(paths), text=True,
+                         capture_output=True)
+    return set(out.stdout.split())
+
+
 def broken_paths(path: Path) -> list[str]:
-    """Repository paths in inline code (`docs/x.md`, `python scripts/y.py ...`) that do not exist; placeholders
-    (RUN_DIR, <name>, *, {a,b}, $VAR) and paths under a run's directory are not checked."""
+    """Repository paths in inline code (`docs/x.md`, `python scripts/y.py ...`) that a fresh clone lacks (missing
+    or git-ignored); placeholders (RUN_DIR, <name>, *, {a,b}, $VAR) and paths under a run's directory are not
+    checked."""
     text = FENCE.sub("", path.read_text(errors="replace"))
-    bad = []
+    bad, present = [], []
     for span in CODE.findall(text):
         for token in span.split():
             token = token.strip("'\",;()[]").split(":")[0].rstrip(".")
-            if not token.startswith(TOP) or (ROOT / token).exists():
+            if not token.startswith(TOP):
                 continue
-            if not re.search(r"[<>*{}$]|\.\.\.|(^|/)[A-Z][A-Z0-9_]*(/|$)", token):  # not a placeholder
+            if (ROOT / token).exists():
+                present.append(token)
+            elif not re.search(r"[<>*{}$]|\.\.\.|(^|/)[A-Z][A-Z0-9_]*(/|$)", token):  # not a placeholder
                 bad.append(token)
-    return bad
+    return bad + sorted(git_ignored(present))
 
 
 def test_every_link_and_path_in_the_markdown_resolves():
@@ -97,3 +112,17 @@ def test_the_checker_sees_a_broken_link(tmp_path):
     assert broken_links(doc, {}) == ["b.md (no such file)", "#nothing (no heading #nothing)"]
     assert slug("A grid as one computation (`--backend vmap`)") == "a-grid-as-one-computation---backend-vmap"
     assert slug("A sweep's workers and their cores") == "a-sweeps-workers-and-their-cores"
+
+
+def test_a_path_only_this_checkout_has_counts_as_missing(tmp_path):
+    """A git-ignored file exists here but not in CI's fresh clone: naming it in a doc is a broken path."""
+    cache_dir = ROOT / "tests" / "__pycache__"
+    cache_dir.mkdir(exist_ok=True)
+    built = Path(tempfile.mkstemp(suffix=".pyc", dir=cache_dir)[1])
+    try:
+        rel = built.relative_to(ROOT).as_posix()
+        doc = tmp_path / "a.md"
+        doc.write_text(f"Run `{rel}` and `tests/test_docs_links.py`, not `tests/no_such_file.py`.\n")
+        assert broken_paths(doc) == ["tests/no_such_file.py", rel]
+    finally:
+        built.unlink()
