@@ -217,20 +217,22 @@ def test_a_resume_carries_the_models_state_exactly(kind, tmp_path):
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("kind", KINDS)
 def test_the_reward_trains_fetchreach(kind, tmp_path):
-    """SAC+HER with each intrinsic reward at weight 0.2 solves FetchReach: an evaluation of 10 episodes reaches
-    0.9 within 6,500 steps (3x128 networks, 2x64 reward models, initial entropy coefficient 0.1: several times
-    cheaper than the thesis' sizes), and the intrinsic reward was live (raw values positive, normalised reward inside
-    [-1, 0]). Measured on seed 0 (Intel Xeon family 6 model 167), success every 500 steps from 4,000: RND 0.1, 0.2,
-    0.6, 1.0 (5,500); ICM 0, 0.2, 0.4, 1.0 (5,500); Disagreement 0.1, 0.2, 0.4, 1.0 (5,500); plain SAC at the same
-    sizes 1.0 at 5,500 (tests/test_precision.py). A broken mix that weighs the rewards the wrong way round (0.2
-    extrinsic, 0.8 intrinsic) stays at 0 with RND through 7,000 steps."""
+    """SAC+HER with each intrinsic reward at weight 0.2 solves FetchReach: an evaluation of 10 episodes reaches 0.9
+    within 8,000 steps (3x128 networks, 2x64 reward models, initial entropy coefficient 0.1: several times cheaper
+    than the thesis' sizes), and the intrinsic reward was live (raw values positive, normalised reward inside [-1,
+    0]). Measured on seed 0, success every 500 steps from 4,000 (first 1.0 in brackets): Intel Xeon family 6 model
+    167: RND 0.1, 0.2, 0.6, 1.0 (5,500); ICM 0, 0.2, 0.4, 1.0 (5,500); Disagreement 0.1, 0.2, 0.4, 1.0 (5,500); AMD
+    EPYC family 25 model 17 (Zen 4): RND 0, 0.2, 0.5, 1.0 (5,500); ICM 0, 0.2, 0.4, 1.0 (5,500); Disagreement 0.1,
+    0.2, 0.4, 0.6, 0.6, 0.6, 1.0 (7,000), so the budget leaves 1,000 steps over the slowest seen; plain SAC at the
+    same sizes 1.0 at 5,500 (tests/test_precision.py). A broken mix that weighs the rewards the wrong way round
+    (0.2 extrinsic, 0.8 intrinsic) stays at 0 with RND through 7,000 steps (Intel) and 8,000 (AMD)."""
     from mcrl.run.rundir import read_rows
     from mcrl.run.trainer import train
 
     cfg = resolve_config("fetchreach-sac", {"intrinsic": kind, "intrinsic_alpha": 0.2,
                                             "hidden_sizes": [128, 128, 128], "intrinsic_hidden_sizes": [64, 64],
                                             "ent_coef_init": 0.1,
-                                            "total_steps": 6500, "eval_every": 500, "eval_episodes": 10,
+                                            "total_steps": 8000, "eval_every": 500, "eval_episodes": 10,
                                             "checkpoint_every": 100_000})
     run = train(cfg, tmp_path / kind, progress=False)
     evals = read_rows(run / "eval.csv")
