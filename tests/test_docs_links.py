@@ -3,6 +3,7 @@ headings that exist, and repository paths written in backticks in the hand-writt
 generated Markdown are checked for links only: their commands record what ran, at the commit that ran them."""
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import tempfile
@@ -118,7 +119,9 @@ def test_a_path_only_this_checkout_has_counts_as_missing(tmp_path):
     """A git-ignored file exists here but not in CI's fresh clone: naming it in a doc is a broken path."""
     cache_dir = ROOT / "tests" / "__pycache__"
     cache_dir.mkdir(exist_ok=True)
-    built = Path(tempfile.mkstemp(suffix=".pyc", dir=cache_dir)[1])
+    fd, name = tempfile.mkstemp(suffix=".pyc", dir=cache_dir)
+    os.close(fd)
+    built = Path(name)
     try:
         rel = built.relative_to(ROOT).as_posix()
         doc = tmp_path / "a.md"
