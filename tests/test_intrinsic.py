@@ -219,8 +219,8 @@ def test_a_resume_carries_the_models_state_exactly(kind, tmp_path):
 def test_the_reward_trains_fetchreach(kind, tmp_path):
     """SAC+HER with each intrinsic reward at weight 0.2 solves FetchReach: an evaluation of 10 episodes reaches 0.9
     within 8,000 steps (3x128 networks, 2x64 reward models, initial entropy coefficient 0.1: several times cheaper
-    than the thesis' sizes), and the intrinsic reward was live (raw values positive, normalised reward inside [-1,
-    0]). Measured on seed 0, success every 500 steps from 4,000 (first 1.0 in brackets): Intel Xeon family 6 model
+    than the thesis' sizes), and the intrinsic reward was live (raw values positive, normalised reward inside
+    [-1, 0]). Measured on seed 0, success every 500 steps from 4,000 (first 1.0 in brackets): Intel Xeon family 6 model
     167: RND 0.1, 0.2, 0.6, 1.0 (5,500); ICM 0, 0.2, 0.4, 1.0 (5,500); Disagreement 0.1, 0.2, 0.4, 1.0 (5,500); AMD
     EPYC family 25 model 17 (Zen 4): RND 0, 0.2, 0.5, 1.0 (5,500); ICM 0, 0.2, 0.4, 1.0 (5,500); Disagreement 0.1,
     0.2, 0.4, 0.6, 0.6, 0.6, 1.0 (7,000), so the budget leaves 1,000 steps over the slowest seen; plain SAC at the
