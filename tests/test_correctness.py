@@ -2,14 +2,13 @@
 import json
 import shutil
 
-import gymnasium as gym
 import jax
 import numpy as np
 import pytest
 
 from mcrl.run import checkpoint
 from mcrl.config import Config, resolve_config
-from mcrl.envs import goal_terminated_fn, inspect, make_env, register_envs
+from mcrl.envs import goal_terminated_fn, inspect, make_env
 from mcrl.run.rundir import read_rows as read_csv
 from mcrl.replay import ReplayBuffer
 from mcrl.algo.sac import Batch
@@ -90,8 +89,7 @@ def test_antmaze_presets_use_the_thesis_ant():
 
 
 def test_her_recomputes_terminated_for_environments_that_end_on_success():
-    register_envs()
-    env = gym.make("PointMaze_UMaze-v3", continuing_task=False)
+    env = make_env(resolve_config(None, {"env_id": "PointMaze_UMaze-v3", "env_kwargs": {"continuing_task": False}}))
     term_fn = goal_terminated_fn(env)
     space = env.observation_space
     od, gd = space["observation"].shape[0], space["desired_goal"].shape[0]

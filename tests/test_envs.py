@@ -1,4 +1,5 @@
 """Environment families (mcrl.envs.FAMILIES) and every registered environment: trains or is refused in one line."""
+import os
 import warnings
 
 import gymnasium as gym
@@ -36,6 +37,30 @@ def test_each_familys_facts_match_a_real_environment(fam):
         assert fam.success_key in info and r <= fam.reward_max, env_id
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("env_id", ["AntMaze_UMazeDense-v5", "PointMaze_UMaze-v3"])
+def test_a_maze_leaves_no_model_file_behind_and_still_runs(env_id):
+    """gymnasium-robotics writes each maze's model to a new file in the temporary directory and keeps it; make_env
+    and the video's make_render_env remove it once MuJoCo has read it, and the environment still steps."""
+    from mcrl.video.gl import make_render_env
+
+    for env in (make_env(resolve_config(None, {"env_id": env_id})), make_render_env(env_id)):
+        try:
+            path = env.unwrapped.tmp_xml_file_path
+            assert path.endswith(".xml") and not os.path.exists(path), path
+            env.reset(seed=0)
+            _, r, _, _, info = env.step(env.action_space.sample())
+            assert "success" in info and np.isfinite(r)
+        finally:
+            env.close()
+    # gymnasium-robotics itself still writes one: the test sees the file the fix removes
+    raw = gym.make(env_id)
+    try:
+        assert os.path.exists(raw.unwrapped.tmp_xml_file_path)
+    finally:
+        os.unlink(raw.unwrapped.tmp_xml_file_path)
+        raw.close()
 
 
 def test_every_registered_environment_steps_or_is_refused_in_one_line():

@@ -1,7 +1,9 @@
 """Environment construction and the observation / action / success conventions mcrl relies on."""
 from __future__ import annotations
 
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -86,7 +88,17 @@ def make_env(cfg: Config, render_mode: str | None = None) -> gym.Env:
                         "e.g. FetchPush-v4 or AntMaze_UMazeDense-v5") from None
     except TypeError as e:
         raise MCRLError(f"environment {cfg.env_id!r} rejected env_kwargs {cfg.env_kwargs}: {_one_line(e)}") from None
+    remove_maze_xml(env)
     return env
+
+
+def remove_maze_xml(env: gym.Env) -> None:
+    """gymnasium-robotics' mazes (AntMaze, PointMaze) write their model to a new file in the temporary directory
+    each time one is made and never remove it: a training run makes two, a sweep thousands. MuJoCo has read it by
+    now, and nothing reads it again."""
+    path = getattr(env.unwrapped, "tmp_xml_file_path", None)
+    if isinstance(path, str) and Path(path).parent == Path(tempfile.gettempdir()):
+        Path(path).unlink(missing_ok=True)
 
 
 def _one_line(e: BaseException) -> str:

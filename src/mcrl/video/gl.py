@@ -20,7 +20,7 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from mcrl.envs import register_envs
+from mcrl.envs import register_envs, remove_maze_xml
 from mcrl.errors import MCRLError, one_line
 
 __all__ = ["APT_PACKAGES", "RenderCheck", "check_renderer", "configure_headless_gl", "make_render_env"]
@@ -172,7 +172,9 @@ def make_render_env(env_id: str, *, width: int | None = None, height: int | None
         kwargs["width"] = int(width)
     if height is not None:
         kwargs["height"] = int(height)
-    return gym.make(env_id, render_mode="rgb_array", **kwargs)
+    env = gym.make(env_id, render_mode="rgb_array", **kwargs)
+    remove_maze_xml(env)
+    return env
 
 
 def check_renderer(env_id: str, **make_kwargs: Any) -> RenderCheck:
