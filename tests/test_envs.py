@@ -45,7 +45,8 @@ def test_a_maze_leaves_no_model_file_behind_and_still_runs(env_id):
     and the video's make_render_env remove it once MuJoCo has read it, and the environment still steps."""
     from mcrl.video.gl import make_render_env
 
-    for env in (make_env(resolve_config(None, {"env_id": env_id})), make_render_env(env_id)):
+    for make in (lambda: make_env(resolve_config(None, {"env_id": env_id})), lambda: make_render_env(env_id)):
+        env = make()  # one at a time, so a failing check still closes the env it made
         try:
             path = env.unwrapped.tmp_xml_file_path
             assert path.endswith(".xml") and not os.path.exists(path), path
