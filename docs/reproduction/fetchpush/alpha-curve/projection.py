@@ -55,5 +55,6 @@ def main() -> None:
         for c, v in zip(family.claims, verdicts.T):
             print(f"  {c.id:45s} {np.mean(v == REPRODUCED):.2f} / {np.mean(v == NOT_REPRODUCED):.2f}")
 
+
 if __name__ == "__main__":
     main()
