@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from mcrl.analysis.claims import claim_test, decide
+from mcrl.analysis.claims import claim_power, claim_test, decide
 from mcrl.analysis.experiment import load_experiment
 from mcrl.analysis.families import report_claims
 from mcrl.analysis.markdown import to_markdown
@@ -102,7 +102,7 @@ def test_the_family_grows_where_the_registry_says_and_nowhere_else(repo: Path) -
     before = _sacmc(repo, "main")
     _sweep(repo / "alpha", {"a0.4": (0.4, {}, [s + 0.02 for s in SAC])})  # the declared alpha arm gets its runs
     after, elsewhere = _sacmc(repo, "main"), _sacmc(repo, "arms", "main")
-    assert (before.family.size, before.family.tested, after.family.tested) == (4, 3, 4)
+    assert (before.family.size, before.family.with_seeds, after.family.with_seeds) == (4, 3, 4)
     assert after.verdict.p_adj > before.verdict.p_adj  # Holm over 4 claims now, in every report
     assert elsewhere.verdict.p_adj == after.verdict.p_adj and elsewhere.family == after.family
 
@@ -139,7 +139,7 @@ def test_pooled_baselines_wait_for_their_equivalence(repo: Path) -> None:
 """)
     claims = report_claims(load_experiment(repo / "main"), load_registry(repo / "claims.yaml"), repo.parent)
     pooled = next(r for r in claims.results if r.y_name == "pooled")
-    assert pooled.y.size == 12 and pooled.verdict.p_adj is None and pooled.family.tested == 0
+    assert pooled.y.size == 12 and pooled.verdict.p_adj is None and pooled.family.blocked
     assert "tested once 'SAC same as variant' is reproduced" in pooled.note
 
 
@@ -158,3 +158,42 @@ def test_a_bad_registry_says_what_to_fix(tmp_path: Path, text: str, says: str) -
     with pytest.raises(MCRLError, match=says) as e:
         load_registry(path)
     assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+POOLED = REGISTRY + """
+  - baseline: variant
+    claims:
+      - {x: SAC, is: same, margin: 0.115}
+  - baseline: {name: pooled, pool: [SAC, variant]}
+    requires: SAC same as variant
+    claims:
+      - {x: SAC-MC 0.2, is: better, by: 0.23}
+      - {x: RND, is: better, by: 0.23}
+"""
+
+
+def test_a_blocked_familys_power_is_at_the_level_its_claims_will_be_tested_at(repo: Path) -> None:
+    """Two claims against the pooled baseline: once unblocked, Holm tests the first at 0.05 / 2, so that is the
+    level of their power (not 0.05, as if the family had one claim), and the report says so."""
+    (repo / "claims.yaml").write_text(POOLED)
+    claims = report_claims(load_experiment(repo / "main", [repo / "arms"]), load_registry(repo / "claims.yaml"),
+                           repo.parent)
+    pooled = [r for r in claims.results if r.y_name == "pooled"]
+    assert len(pooled) == 2 and all(r.verdict.p_adj is None and r.family.blocked for r in pooled)
+    for r in pooled:
+        assert r.level == pytest.approx(0.025)
+        assert r.power == pytest.approx(claim_power(r.kind, r.by, r.x, r.y, 0.025))
+        assert r.power != pytest.approx(claim_power(r.kind, r.by, r.x, r.y, 0.05))
+    md = to_markdown(verdict_section(claims), repo)
+    assert [_verdict_row(md, x, "> pooled")[8] for x in ("SAC-MC 0.2", "RND")] == [
+        f"{r.power:.2f} at 0.025" for r in pooled]
+    # a tested family's power is at its own first level: 0.05 / 3, its claims with seeds
+    sac = next(r for r in claims.results if r.y_name == "SAC" and r.x_name == "SAC-MC 0.2")
+    assert sac.level == pytest.approx(0.05 / 3) and _verdict_row(md, "SAC-MC 0.2", "> SAC")[8] == (
+        f"{sac.power:.2f} at 0.0167")
+
+
+def _verdict_row(md: str, x: str, has: str) -> list[str]:
+    """The verdict table's row of the claim whose X is the registry's arm ``x`` and whose statement has ``has``."""
+    line = next(ln for ln in _section(md, "Verdicts").splitlines() if ln.startswith(f"| {x} ") and has in ln)
+    return [c.strip() for c in line.strip("|").split("|")]

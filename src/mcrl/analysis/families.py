@@ -22,7 +22,7 @@ from mcrl.analysis.cells import CONF, SEED, is_code_variant, other_intrinsic, re
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, ClaimTest, Verdict, claim_power, claim_test, decide
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.registry import ArmRuns, ArmSpec, FamilySpec, Registry
-from mcrl.analysis.stats import mean_difference_ci, probability_of_improvement
+from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT, mean_difference_ci, probability_of_improvement
 from mcrl.analysis.thesis import THESIS_RESULTS, equivalence_margin, env_ids, thesis_experiment, thesis_gain
 
 CODE_VARIANT = "the thesis' code's variant of SAC-MC alpha=0.2 (one batch-mean KL, the whole observation)"
@@ -35,15 +35,22 @@ class Family:
     name: str  # "against mcrl SAC"
     declared_in: str | None  # the registry file as shown; None: this report's own claims against the baseline
     size: int  # claims in the family
-    tested: int  # of them with enough seeds: the m of Holm's correction
-    blocked: str | None = None  # why the family was not tested
+    with_seeds: int  # of them with enough seeds: the m of Holm's correction (a blocked family's once it is tested)
+    blocked: str | None = None  # why the family is not tested
+
+    @property
+    def level(self) -> float:
+        """Holm's first level, LEVEL / m: a claim whose own p-value reaches it is reproduced whatever the other
+        claims' p-values, so the power computed at it is the least chance the claim has (of a blocked family: once
+        the family is tested)."""
+        return LEVEL / max(self.with_seeds, 1)
 
     def phrase(self) -> str:
         """How a claim's adjusted p-value was adjusted, in words."""
         if self.declared_in is None:
-            return ("the only claim against this baseline, so unadjusted" if self.tested <= 1 else
-                    f"Holm-adjusted over the {self.tested} claims against this baseline in this report")
-        seeds = "" if self.tested == self.size else f", {self.tested} with enough seeds"
+            return ("the only claim against this baseline, so unadjusted" if self.with_seeds <= 1 else
+                    f"Holm-adjusted over the {self.with_seeds} claims against this baseline in this report")
+        seeds = "" if self.with_seeds == self.size else f", {self.with_seeds} with enough seeds"
         return f"Holm-adjusted over the family '{self.name}' of {self.declared_in} ({self.size} claims{seeds})"
 
 
@@ -61,7 +68,7 @@ class ClaimResult:
     test: ClaimTest
     verdict: Verdict
     family: Family
-    power: float  # at Holm's first level, LEVEL / tested
+    power: float  # at Holm's first level of its family, :attr:`level`
     source: str = ""
     x_group: ConfigGroup | None = None  # the report's arms, where they are in it
     y_group: ConfigGroup | None = None
@@ -76,7 +83,8 @@ class ClaimResult:
 
     @property
     def level(self) -> float:
-        return LEVEL / max(self.family.tested, 1)
+        """The level its power is computed at: its family's first Holm level (:attr:`Family.level`)."""
+        return self.family.level
 
 
 @dataclass(frozen=True)
@@ -127,13 +135,14 @@ def candidates(exp: Experiment) -> list[Candidate]:
 def _decide(kinds: list[str], bys: list[float | None], xs: list[np.ndarray], y: np.ndarray,
             blocked: bool = False) -> tuple[list[ClaimTest], list[Verdict], list[float], int]:
     """Tests, verdicts (Holm within the family) and power at Holm's first level of one family's claims, and how
-    many of them had enough seeds to be tested."""
+    many of them have enough seeds: Holm's m. A blocked family gets no verdicts, and its power is at the level
+    its claims will be tested at once it is unblocked (LEVEL / m, not LEVEL)."""
     tests = [claim_test(x, y, by, kind) for x, by, kind in zip(xs, bys, kinds)]  # type: ignore[arg-type]
+    m = sum(min(t.n_x, t.n_y) >= MIN_SEEDS_FOR_VERDICT for t in tests)  # as decide() counts them
     verdicts = [Verdict(NOT_DECIDABLE, None, None, 0)] * len(tests) if blocked else decide(tests)
-    tested = max((v.family for v in verdicts), default=0)
-    power = [claim_power(k, by, x, y, LEVEL / max(tested, 1))  # type: ignore[arg-type]
+    power = [claim_power(k, by, x, y, LEVEL / max(m, 1))  # type: ignore[arg-type]
              for k, by, x in zip(kinds, bys, xs)]
-    return tests, verdicts, power, tested
+    return tests, verdicts, power, m
 
 
 class _Declared:
@@ -159,9 +168,9 @@ class _Declared:
             if req.verdict.verdict != "reproduced":
                 blocked = f"tested once '{f.requires}' is reproduced (now: {req.verdict.verdict})"
         y, xs = self.finals(f.baseline), [self.finals(c.x) for c in f.claims]
-        tests, verdicts, power, tested = _decide([c.kind for c in f.claims], [c.by for c in f.claims], xs, y,
-                                                 blocked is not None)
-        fam = Family(f.name, self.shown, len(f.claims), tested, blocked)
+        tests, verdicts, power, m = _decide([c.kind for c in f.claims], [c.by for c in f.claims], xs, y,
+                                            blocked is not None)
+        fam = Family(f.name, self.shown, len(f.claims), m, blocked)
         out = [ClaimResult(c.id, c.kind, c.by, c.x.name, f.baseline.name, x, y, t, v, fam, pw, c.source,
                            note=blocked or "")
                for c, x, t, v, pw in zip(f.claims, xs, tests, verdicts, power)]
@@ -212,8 +221,8 @@ def report_claims(exp: Experiment, registry: Registry | None, root: Path | None 
     for ks in own.values():
         y = ks[0].y.finals()[0]
         xs = [k.x.finals()[0] for k in ks]
-        tests, verdicts, power, tested = _decide([k.kind for k in ks], [k.by for k in ks], xs, y)
-        fam = Family(f"against `{ks[0].y.key}`", None, len(ks), tested)
+        tests, verdicts, power, m = _decide([k.kind for k in ks], [k.by for k in ks], xs, y)
+        fam = Family(f"against `{ks[0].y.key}`", None, len(ks), m)
         results += [ClaimResult(f"{k.x.key} {k.kind} {k.y.key}", k.kind, k.by, f"`{k.x.key}`", f"`{k.y.key}`", x,
                                 y, t, v, fam, pw, k.source, k.x, k.y, k.what)
                     for k, x, t, v, pw in zip(ks, xs, tests, verdicts, power)]

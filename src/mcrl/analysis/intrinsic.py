@@ -25,6 +25,7 @@ from mcrl.analysis.families import ClaimResult, ReportClaims
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT
 from mcrl.analysis.thesis import env_ids, thesis_experiment, thesis_gain
+from mcrl.analysis.verdicts import power_cell
 
 
 def effect_of_interest(exp: Experiment) -> float | None:
@@ -59,7 +60,7 @@ def _row(r: ClaimResult) -> list[str]:
     (p, lo, hi), (m, mlo, mhi) = r.effects
     return [f"`{r.x_group.key}`", base, f"{r.x.size} / {r.y.size}", test, ps(r.test.p, r.verdict.p_adj),
             ps(r.test.p_refute, r.verdict.p_refute_adj), f"**{_words(r)}**",
-            f"{p:.3f} {interval((lo, hi), 3)}", f"{m:+.3f} [{mlo:+.3f}, {mhi:+.3f}]", num(r.power, 2)]
+            f"{p:.3f} {interval((lo, hi), 3)}", f"{m:+.3f} [{mlo:+.3f}, {mhi:+.3f}]", power_cell(r)]
 
 
 def intrinsic_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
@@ -82,7 +83,8 @@ def intrinsic_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
         f"rank-sum test. Level {LEVEL}, Holm-adjusted over the family of the baseline (every claim against it; "
         f"see [Verdicts](#verdicts) for its members and size); fewer than {MIN_SEEDS_FOR_VERDICT} seeds per arm give "
         "no verdict. P(X > Y) and the mean difference (95% bootstrap intervals) are effect sizes; the last column is "
-        "the power the seeds had to detect a difference of d (normal scores with the observed SDs)."))
+        "the power the seeds had to detect a difference of d (normal scores with the observed SDs), at the level "
+        "given: the first Holm level of the baseline's family."))
     if missing:
         out.append(Paragraph(f"This report has no finished run of {' or '.join(missing)}: add its experiment with "
                              "`mcrl report EXP --with DIR`."))

@@ -22,6 +22,16 @@ def _name(r: ClaimResult, side: str) -> str:
     return name if group is None or name in (group.key, f"`{group.key}`") else f"{name} (`{group.key}`)"
 
 
+def level(a: float) -> str:
+    """A test level as the report prints it: 0.05, 0.025, 0.0167, 0.00556."""
+    return f"{a:.3g}"
+
+
+def power_cell(r: ClaimResult) -> str:
+    """'0.58 at 0.025': the claim's power and the level it is computed at (its family's first Holm level)."""
+    return "n/a" if r.power != r.power else f"{num(r.power, 2)} at {level(r.level)}"
+
+
 def verdict_cell(r: ClaimResult) -> str:
     """'**reproduced** (better)', '**not decidable**: too few seeds', ..."""
     if r.note:
@@ -53,9 +63,9 @@ def verdict_section(claims: ReportClaims) -> list[Block]:
                      "-" if few else _p(r.test.p, r.verdict.p_adj),
                      "-" if few else _p(r.test.p_refute if r.verdict.p_refute_adj is not None else None,
                                         r.verdict.p_refute_adj),
-                     num(r.power, 2), verdict_cell(r)])
+                     power_cell(r), verdict_cell(r)])
     families = {r.family.name: r.family for r in claims.results}
-    notes = [f"'{f.name}'{'' if f.declared_in else ' (this report)'}: {f.size} claims, Holm over the {f.tested} "
+    notes = [f"'{f.name}'{'' if f.declared_in else ' (this report)'}: {f.size} claims, Holm over the {f.with_seeds} "
              "with enough seeds" + (f"; {f.blocked}" if f.blocked else "") for f in families.values()]
     return out + [
         Paragraph(f"Each claim compares the final success rate of X with baseline Y by exact rank-sum tests "
@@ -64,7 +74,10 @@ def verdict_section(claims: ReportClaims) -> list[Block]:
                   "reproduced' when its opposite is (an improvement or deficit as large as claimed excluded, or a "
                   "difference beyond the margin shown), else 'not decidable'. The claims are "
                   f"{where}. Mean difference X - Y and P(X > Y) with 95% bootstrap intervals; power: the chance "
-                  "these seeds reproduce the claim if it holds as stated, at Holm's first level."),
+                  "these seeds reproduce the claim if it holds as stated, at the level given: its family's first "
+                  "Holm level, 0.05 / m over the family's m claims with enough seeds (of a family not tested yet: "
+                  "the level its claims will first be tested at). A claim whose own p reaches it is reproduced "
+                  "whatever the other claims' p-values."),
         Table(["claim", "from", "family", "seeds X / Y", "mean difference [95% CI]", "P(X > Y) [95% CI]",
                "p (adjusted)", "p of its opposite (adjusted)", "power", "verdict"], rows),
         Paragraph("Families:"), Bullets(notes),
@@ -94,10 +107,10 @@ def tests_sentence(r: ClaimResult) -> str:
 
 
 def power_sentence(r: ClaimResult) -> str:
-    level = f"level {r.level:.3g}, normal scores with the observed SDs"
+    at = f"level {level(r.level)}, normal scores with the observed SDs"
     if r.kind == "same":
         return (f"Power of these seeds to show equivalence within {r.by:.3g} when there is no difference: "
-                f"{num(r.power, 2)} (two one-sided rank-sum tests at {level}).")
+                f"{num(r.power, 2)} (two one-sided rank-sum tests at {at}).")
     size = "n/a" if r.by is None else f"{r.by:+.2f}" if r.kind == "better" else f"{-r.by:+.2f}"
     what = f"the thesis' {size}" if r.source.startswith("thesis") and r.kind == "better" else f"a difference of {size}"
-    return f"Power of these seeds to detect {what}: {num(r.power, 2)} (rank-sum test at {level})."
+    return f"Power of these seeds to detect {what}: {num(r.power, 2)} (rank-sum test at {at})."
