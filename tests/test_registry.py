@@ -140,7 +140,7 @@ def test_pooled_baselines_wait_for_their_equivalence(repo: Path) -> None:
     claims = report_claims(load_experiment(repo / "main"), load_registry(repo / "claims.yaml"), repo.parent)
     pooled = next(r for r in claims.results if r.y_name == "pooled")
     assert pooled.y.size == 12 and pooled.verdict.p_adj is None and pooled.family.blocked
-    assert "tested once 'SAC same as variant' is reproduced" in pooled.note
+    assert "blocked by its requirement 'SAC same as variant' (family 'against variant')" in pooled.note
 
 
 @pytest.mark.parametrize("text, says", [
@@ -197,3 +197,20 @@ def _verdict_row(md: str, x: str, has: str) -> list[str]:
     """The verdict table's row of the claim whose X is the registry's arm ``x`` and whose statement has ``has``."""
     line = next(ln for ln in _section(md, "Verdicts").splitlines() if ln.startswith(f"| {x} ") and has in ln)
     return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_a_blocked_family_says_it_is_blocked_and_by_what(repo: Path) -> None:
+    """Not 'Holm over the 0 with enough seeds': the family is not tested, because the claim it requires (named,
+    with its family and verdict) is not reproduced; once it is, Holm runs over its claims with seeds."""
+    (repo / "claims.yaml").write_text(POOLED)
+    claims = report_claims(load_experiment(repo / "main", [repo / "arms"]), load_registry(repo / "claims.yaml"),
+                           repo.parent)
+    md = to_markdown(verdict_section(claims), repo)
+    why = ("blocked by its requirement 'SAC same as variant' (family 'against variant'), which is not decidable "
+           "with this many seeds")
+    assert (f"- 'against pooled': 2 claims, not tested: {why}; once that claim is reproduced, Holm over the 2 with "
+            "enough seeds (first level 0.025)") in md
+    assert "Holm over the 0" not in md
+    assert _verdict_row(md, "SAC-MC 0.2", "> pooled")[9] == (
+        f"**not decidable with this many seeds**: its family is not tested: {why}")
+    assert "- 'against SAC': 4 claims, Holm over the 3 with enough seeds" in md  # a tested family as before

@@ -36,7 +36,7 @@ class Family:
     declared_in: str | None  # the registry file as shown; None: this report's own claims against the baseline
     size: int  # claims in the family
     with_seeds: int  # of them with enough seeds: the m of Holm's correction (a blocked family's once it is tested)
-    blocked: str | None = None  # why the family is not tested
+    blocked: str | None = None  # why the family is not tested: "blocked by its requirement '...' (family '...'), ..."
 
     @property
     def level(self) -> float:
@@ -166,13 +166,14 @@ class _Declared:
             fam, claim = self.registry.find(f.requires)  # type: ignore[misc]
             req = next(r for r in self.family(fam) if r.id == claim.id)
             if req.verdict.verdict != "reproduced":
-                blocked = f"tested once '{f.requires}' is reproduced (now: {req.verdict.verdict})"
+                blocked = (f"blocked by its requirement '{f.requires}' (family '{fam.name}'), which is "
+                           f"{req.verdict.verdict}")
         y, xs = self.finals(f.baseline), [self.finals(c.x) for c in f.claims]
         tests, verdicts, power, m = _decide([c.kind for c in f.claims], [c.by for c in f.claims], xs, y,
                                             blocked is not None)
         fam = Family(f.name, self.shown, len(f.claims), m, blocked)
         out = [ClaimResult(c.id, c.kind, c.by, c.x.name, f.baseline.name, x, y, t, v, fam, pw, c.source,
-                           note=blocked or "")
+                           note=f"its family is not tested: {blocked}" if blocked else "")
                for c, x, t, v, pw in zip(f.claims, xs, tests, verdicts, power)]
         self._done[key] = out
         return out

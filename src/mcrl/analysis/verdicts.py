@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from mcrl.analysis.cells import interval, num, pvalue
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, outcome, statement
-from mcrl.analysis.families import ClaimResult, ReportClaims
+from mcrl.analysis.families import ClaimResult, Family, ReportClaims
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT
 
@@ -42,6 +42,15 @@ def verdict_cell(r: ClaimResult) -> str:
     return f"**{r.verdict.verdict}**" + ("" if r.verdict.verdict == NOT_DECIDABLE else f" ({said})")
 
 
+def _family_note(f: Family) -> str:
+    """'against X': its size and the m of its Holm correction, or, where it is blocked, by what."""
+    head = f"'{f.name}'{'' if f.declared_in else ' (this report)'}: {f.size} claims"
+    if f.blocked:
+        return (f"{head}, not tested: {f.blocked}; once that claim is reproduced, Holm over the {f.with_seeds} with "
+                f"enough seeds (first level {level(f.level)})")
+    return f"{head}, Holm over the {f.with_seeds} with enough seeds"
+
+
 def verdict_section(claims: ReportClaims) -> list[Block]:
     """The table of every claim, family by family."""
     out: list[Block] = [Heading(2, "Verdicts")]
@@ -64,9 +73,7 @@ def verdict_section(claims: ReportClaims) -> list[Block]:
                      "-" if few else _p(r.test.p_refute if r.verdict.p_refute_adj is not None else None,
                                         r.verdict.p_refute_adj),
                      power_cell(r), verdict_cell(r)])
-    families = {r.family.name: r.family for r in claims.results}
-    notes = [f"'{f.name}'{'' if f.declared_in else ' (this report)'}: {f.size} claims, Holm over the {f.with_seeds} "
-             "with enough seeds" + (f"; {f.blocked}" if f.blocked else "") for f in families.values()]
+    notes = [_family_note(f) for f in {r.family.name: r.family for r in claims.results}.values()]
     return out + [
         Paragraph(f"Each claim compares the final success rate of X with baseline Y by exact rank-sum tests "
                   f"(mcrl.analysis.claims) at level {LEVEL}: 'reproduced' when the claim's own test is significant "
