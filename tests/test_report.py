@@ -411,6 +411,23 @@ def test_reference_arms_and_provenance(tmp_path: Path, capsys: pytest.CaptureFix
     assert _row(_section(md, "Comparison with the thesis (FetchPush)"), "SAC, reference (`stable-baselines3 SAC`)")
 
 
+def test_provenance_counts_every_resume_from_the_runs(tmp_path: Path) -> None:
+    """Each resume a reference run's peer.json records (`resumed_at`, one step per resume) is in the provenance of
+    its directory, counted, whatever provenance.json's own text says."""
+    exp = _experiment(tmp_path / "exp", {0.0: FINALS["alpha=0"], 0.2: FINALS["alpha=0.2"]})
+    peers = tmp_path / "peers"
+    resumed = {0: [110_000], 1: [], 3: [20_000, 20_000, 60_000], 6: [30_000]}
+    for seed, steps in resumed.items():
+        peer = {"system": "stable-baselines3", "version": "2.9.2", **({"resumed_at": steps} if steps else {})}
+        _write_run(peers / "runs" / f"sb3-s{seed}", 0.0, seed, (0.5, -25.0), peer=peer)
+    (peers / "provenance.json").write_text(json.dumps({"commit": "4567def", "command": "runner --seed N"}))
+    md = write_report(exp, tmp_path / "rep", extra_runs=[peers]).read_text()
+    prov = md[md.index("**Provenance of `peers`**"):]
+    assert ("- resumed (each run's peer.json, resumed_at): 3 of 4 runs, 5 resumes: sb3-s0 once, from step 110,000; "
+            "sb3-s3 3 times, from steps 20,000, 20,000 and 60,000; sb3-s6 once, from step 30,000") in prov
+    assert "resumed" not in md[:md.index("**Provenance of `peers`**")]  # mcrl's runs record none
+
+
 def test_with_a_missing_directory_is_one_line(tmp_path: Path, experiment: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     rc = main(["report", str(experiment), "--with", str(tmp_path / "nope")])

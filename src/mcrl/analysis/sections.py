@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -92,12 +93,42 @@ def provenance(exp: Experiment, claims_file: str | None) -> list[Block]:
     if exp.extra_sources:
         items.append("runs added from: " + ", ".join(code(str(p)) for p in exp.extra_sources))
     out: list[Block] = [Heading(2, "Provenance and method"), Bullets(items)]
-    if exp.provenance:
-        out += [Paragraph("**Provenance** (from provenance.json):"), Bullets(_provenance(exp.provenance))]
-    for path, prov in exp.extra_provenance.items():
-        out += [Paragraph(f"**Provenance of {code(path.name)}** (from {code(str(path / 'provenance.json'))}):"),
-                Bullets(_provenance(prov))]
+    resumed = _resumes(exp.runs)
+    main = resumed.get(exp.dir.resolve(), [])
+    if exp.provenance or main:
+        out += [Paragraph("**Provenance** (from provenance.json):"), Bullets(_provenance(exp.provenance) + main)]
+    for path in [p for p in exp.extra_sources if p.resolve() != exp.dir.resolve()]:
+        prov, more = exp.extra_provenance.get(path, {}), resumed.get(path.resolve(), [])
+        if prov or more:
+            out += [Paragraph(f"**Provenance of {code(path.name)}** (from {code(str(path / 'provenance.json'))}):"),
+                    Bullets(_provenance(prov) + more)]
     return out
+
+
+def _resumes(runs: Sequence[Run]) -> dict[Path, list[str]]:
+    """Per directory the runs were read from: one line counting every resume its runs record (a reference run's
+    peer.json lists the step of each in ``resumed_at``), e.g. 'resumed (...): 2 of 12 runs, 4 resumes: s0 once,
+    from step 110,000; s3 3 times, from steps 20,000, 20,000 and 60,000'. Directories without one are left out."""
+    by_source: dict[Path, list[Run]] = {}
+    for r in runs:
+        if r.source is not None and r.status != "missing":
+            by_source.setdefault(r.source.resolve(), []).append(r)
+    out = {}
+    for source, rs in by_source.items():
+        at = {id(r): [int(s) for s in (r.peer or {}).get("resumed_at") or []] for r in rs}
+        done = sorted((r for r in rs if at[id(r)]), key=lambda r: (r.seed is None, r.seed or 0, r.dir.name))
+        if done:
+            out[source] = [f"resumed (each run's peer.json, resumed_at): {len(done)} of {len(rs)} runs, "
+                           f"{sum(len(at[id(r)]) for r in done)} resumes: "
+                           + "; ".join(_resumed(r, at[id(r)]) for r in done)]
+    return out
+
+
+def _resumed(r: Run, at: list[int]) -> str:
+    """'s3 3 times, from steps 20,000, 20,000 and 60,000'."""
+    times = "once" if len(at) == 1 else "twice" if len(at) == 2 else f"{len(at)} times"
+    where = ", ".join(steps(s) for s in at[:-1]) + (" and " if len(at) > 1 else "") + steps(at[-1])
+    return f"{r.dir.name} {times}, from step{'s' if len(at) > 1 else ''} {where}"
 
 
 def _provenance(prov: dict[str, object]) -> list[str]:
