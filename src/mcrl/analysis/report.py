@@ -20,7 +20,8 @@ from mcrl.analysis.families import report_claims
 from mcrl.analysis.intrinsic import intrinsic_section
 from mcrl.analysis.markdown import Block, to_html, to_markdown
 from mcrl.analysis.registry import Registry, find_registry, load_registry, repo_root
-from mcrl.analysis.sections import provenance, results, summary
+from mcrl.analysis.provenance import provenance
+from mcrl.analysis.sections import results, summary
 from mcrl.analysis.verdicts import verdict_section
 from mcrl.errors import MCRLError
 

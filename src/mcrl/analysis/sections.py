@@ -1,6 +1,7 @@
 """The sections of ``mcrl report`` that apply to any experiment: tables, figures and readings, as typed blocks
 (:mod:`mcrl.analysis.markdown`). The claims and their verdicts are :mod:`mcrl.analysis.verdicts`, the thesis'
-comparison :mod:`mcrl.analysis.comparison`; :mod:`mcrl.analysis.report` puts them in order.
+comparison :mod:`mcrl.analysis.comparison`, how the report was made :mod:`mcrl.analysis.provenance`;
+:mod:`mcrl.analysis.report` puts them in order.
 
 Every reading of a result (a difference between configurations) is drawn only when each configuration it compares
 has at least ``MIN_SEEDS_FOR_VERDICT`` finished seeds, and comes from an exact test
@@ -13,11 +14,10 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
-from mcrl.analysis.cells import (CONF, SEED, code, mean_cell, mean_ci, name, num, other_intrinsic, pvalue,
+from mcrl.analysis.cells import (CONF, SEED, mean_cell, mean_ci, name, num, other_intrinsic, pvalue,
                                  sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
 from mcrl.analysis.experiment import ConfigGroup, Experiment
@@ -28,7 +28,6 @@ from mcrl.analysis.runs import Run
 from mcrl.analysis.stats import (
     MIN_SEEDS_FOR_VERDICT,
     align_curves,
-    bootstrap_backend,
     minimum_detectable_difference,
     probability_of_improvement,
     seeds_to_detect,
@@ -61,7 +60,7 @@ def _comparisons(exp: Experiment) -> list[tuple[ConfigGroup, ConfigGroup]]:
 
 
 def summary(exp: Experiment) -> list[Block]:
-    """The report's title and what it is made of, in a few lines; how it was made comes last (:func:`provenance`)."""
+    """The report's title and what it is made of, in a few lines; how it was made comes last (:func:`mcrl.analysis.provenance.provenance`)."""
     n_done = sum(r.status == "finished" for r in exp.runs)
     envs = sorted({str(r.config["env_id"]) for r in exp.runs if "env_id" in r.config})
     budgets = sorted({r.total_steps for r in exp.runs if r.total_steps is not None})
@@ -73,69 +72,6 @@ def summary(exp: Experiment) -> list[Block]:
         f"configurations: {', '.join(f'`{g.key}`' for g in exp.configs)}",
         "provenance (commits, machines, commands) and method: [at the end](#provenance-and-method)",
     ])]
-
-
-def provenance(exp: Experiment, claims_file: str | None) -> list[Block]:
-    """How the report was made: statistics used, reference arms, extra directories, claims registry, and each
-    experiment's provenance.json."""
-    items = [
-        f"confidence intervals: 95%, percentile bootstrap over seeds (seed {SEED}), none from fewer than "
-        f"{MIN_SEEDS_FOR_VERDICT} seeds; IQM and probability of "
-        f"improvement: stratified bootstrap via {bootstrap_backend()}",
-        f"readings and verdicts need at least {MIN_SEEDS_FOR_VERDICT} finished seeds in every configuration "
-        "compared (MIN_SEEDS_FOR_VERDICT); with fewer the report says 'too few seeds for a verdict'",
-        f"claims registry: {code(claims_file) if claims_file else 'none (each baseline is its own family here)'}",
-    ]
-    peers = [g for g in exp.configs if g.peer]
-    if peers:
-        items.append("reference arms, not trained by mcrl (peer.json): "
-                     + ", ".join(f"`{g.key}` ({g.peer})" for g in peers))
-    if exp.extra_sources:
-        items.append("runs added from: " + ", ".join(code(str(p)) for p in exp.extra_sources))
-    out: list[Block] = [Heading(2, "Provenance and method"), Bullets(items)]
-    resumed = _resumes(exp.runs)
-    main = resumed.get(exp.dir.resolve(), [])
-    if exp.provenance or main:
-        out += [Paragraph("**Provenance** (from provenance.json):"), Bullets(_provenance(exp.provenance) + main)]
-    for path in [p for p in exp.extra_sources if p.resolve() != exp.dir.resolve()]:
-        prov, more = exp.extra_provenance.get(path, {}), resumed.get(path.resolve(), [])
-        if prov or more:
-            out += [Paragraph(f"**Provenance of {code(path.name)}** (from {code(str(path / 'provenance.json'))}):"),
-                    Bullets(_provenance(prov) + more)]
-    return out
-
-
-def _resumes(runs: Sequence[Run]) -> dict[Path, list[str]]:
-    """Per directory the runs were read from: one line counting every resume its runs record (a reference run's
-    peer.json lists the step of each in ``resumed_at``), e.g. 'resumed (...): 2 of 12 runs, 4 resumes: s0 once,
-    from step 110,000; s3 3 times, from steps 20,000, 20,000 and 60,000'. Directories without one are left out."""
-    by_source: dict[Path, list[Run]] = {}
-    for r in runs:
-        if r.source is not None and r.status != "missing":
-            by_source.setdefault(r.source.resolve(), []).append(r)
-    out = {}
-    for source, rs in by_source.items():
-        at = {id(r): [int(s) for s in (r.peer or {}).get("resumed_at") or []] for r in rs}
-        done = sorted((r for r in rs if at[id(r)]), key=lambda r: (r.seed is None, r.seed or 0, r.dir.name))
-        if done:
-            out[source] = [f"resumed (each run's peer.json, resumed_at): {len(done)} of {len(rs)} runs, "
-                           f"{sum(len(at[id(r)]) for r in done)} resumes: "
-                           + "; ".join(_resumed(r, at[id(r)]) for r in done)]
-    return out
-
-
-def _resumed(r: Run, at: list[int]) -> str:
-    """'s3 3 times, from steps 20,000, 20,000 and 60,000'."""
-    times = "once" if len(at) == 1 else "twice" if len(at) == 2 else f"{len(at)} times"
-    where = ", ".join(steps(s) for s in at[:-1]) + (" and " if len(at) > 1 else "") + steps(at[-1])
-    return f"{r.dir.name} {times}, from step{'s' if len(at) > 1 else ''} {where}"
-
-
-def _provenance(prov: dict[str, object]) -> list[str]:
-    """provenance.json's items, the known keys first; "machines" (run -> machine) is what "machine" summarises."""
-    known = {"commit": "code commit", "machine": "machine", "command": "command", "rerun_one_seed": "re-run one seed"}
-    order = [k for k in known if k in prov] + sorted(k for k in prov if k not in known and k != "machines")
-    return [f"{known.get(k, k)}: {code(str(prov[k]))}" for k in order]
 
 
 def _curves_by_config(series: Sequence[tuple[str, dict[str, np.ndarray]]], col: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
