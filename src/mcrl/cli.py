@@ -203,6 +203,43 @@ def cmd_sweep(args) -> int:
     return 1 if res.failed or res.stopped or res.locked else 0
 
 
+def cmd_decide(args) -> int:
+    from mcrl.decide import runner
+    from mcrl.decide.plan import load_plan
+
+    plan = load_plan(args.plan)
+    st = runner.state(plan)
+    if args.dry_run:
+        print(f"plan {plan.path} ({plan.hash[:19]}...): {len(plan.arms)} arms, seeds {plan.seeds[0]}.."
+              f"{plan.seeds[-1]} ({plan.max_seeds} an arm at most), {plan.batch} an arm per look, family level "
+              f"{plan.level:g} one-sided ({plan.multiplicity}); {len(st.looks)} look(s) taken")
+        print(runner.format_boundary_table(plan))
+        if st.done:
+            print(f"decided at look {len(st.looks)} ({st.looks[-1]['decision']}): no run would start")
+            return 0
+        todo = runner.batch_plan(st)
+        for r in todo.runs:
+            if r.seed in st.next_batch().get(r.config_key, []):
+                print(f"{r.name}  [{r.config_key}, seed {r.seed}]  {r.overrides}")
+        print(f"look {len(st.looks) + 1} would need {len(todo.runs)} finished runs; nothing written (--dry-run)")
+        return 0
+    if args.look:
+        print(runner.summary_line(runner.look(plan, runner.check_commit(plan, args.any_commit))))
+        return 0
+    options = dict(backend=args.backend, workers=args.workers, threads_per_run=args.threads_per_run,
+                   address=args.address, retries=args.retries, progress=not args.no_progress,
+                   group_size=args.group_size, env_workers=args.env_workers)
+    try:
+        st = runner.decide(plan.path, once=args.once, any_commit=args.any_commit, **options)
+    except runner.SweepIncomplete as e:
+        print(f"mcrl: {e}", file=sys.stderr)
+        return 128 + e.result.stopped_by if e.result.stopped_by is not None else 1
+    except KeyboardInterrupt:
+        print(f"mcrl: interrupted; no look taken; `mcrl decide {plan.path}` resumes the batch", file=sys.stderr)
+        return stop.exit_code()
+    return 0
+
+
 def cmd_render(args) -> int:
     require_all(RENDER_MODULES + (("imageio_ffmpeg",) if args.format == "mp4" else ()), None, "mcrl render")
     from mcrl.video.render import render_run
@@ -303,6 +340,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="validate and list the runs; write nothing")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (run lines are still printed)")
     p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("decide", help="run a sequential plan (plan.yaml) batch by batch until its claims are decided",
+                       description="Run the next batch of a preregistered sequential plan through a sweep backend, "
+                       "then take the look (group-sequential bounds) and append it to looks.jsonl beside the plan; "
+                       "repeat until every claim is decided. Stopping and running it again resumes the batch.")
+    p.add_argument("plan", help="the plan.yaml (or its directory); runs go into runs/ beside it")
+    p.add_argument("--dry-run", action="store_true", help="print the boundary table and the next batch's runs")
+    p.add_argument("--once", action="store_true", help="one batch and its look, then stop")
+    p.add_argument("--look", action="store_true", help="take the next look now from finished runs (starts no run)")
+    p.add_argument("--any-commit", action="store_true", help="run even if this mcrl is not the plan's commit")
+    p.add_argument("--backend", choices=sweep_backends.names(), default="local")
+    p.add_argument("--workers", type=int, help="runs at a time (default: the number of cores)")
+    p.add_argument("--threads-per-run", type=int, help="pin each run's process to N cores")
+    p.add_argument("--address", help="Ray cluster address (ray only)")
+    p.add_argument("--group-size", type=int, help="vmap: at most N runs per group")
+    p.add_argument("--env-workers", type=int, default=0, help="vmap: environment processes per group")
+    p.add_argument("--retries", type=int, default=0, help="restart a run whose worker died, up to N times")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_decide)
 
     p = sub.add_parser("render", help="video of the saved policy with its intrinsic reward's timeline")
     p.add_argument("run_dir")

@@ -35,13 +35,14 @@ def default_exp_dir(plan: SweepPlan) -> Path:
     return Path("experiments") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def _merge_with_existing(plan: SweepPlan, exp: Path) -> tuple[dict | None, list[dict]]:
-    """Check that `plan` fits the sweep already in `exp`; the runs of the merged sweep.json."""
+def _merge_with_existing(plan: SweepPlan, exp: Path, shared: bool = False) -> tuple[dict | None, list[dict]]:
+    """Check that `plan` fits the sweep already in `exp`; the runs of the merged sweep.json. `shared`: `exp` may
+    hold other files before its first sweep (a sequential plan's directory, `mcrl decide`)."""
     if exp.exists() and not exp.is_dir():
         raise MCRLError(f"--exp {exp} is a file: give a directory")
     old = load_sweep_json(exp) if exp.is_dir() else None
     if old is None:
-        if exp.is_dir() and any(exp.iterdir()):
+        if exp.is_dir() and not shared and any(exp.iterdir()):
             raise MCRLError(f"--exp {exp} exists and is not a sweep directory (no {SWEEP_JSON}): choose a new "
                             "directory or an empty one")
         return None, [r.entry() for r in plan.runs]
@@ -119,11 +120,12 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
               threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
               tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
               out: Callable[[str], None] | None = None, group_size: int | None = None,
-              env_workers: int = 0) -> SweepResult:
+              env_workers: int = 0, shared_dir: bool = False) -> SweepResult:
     """Run every unfinished run of `plan` into one experiment directory; see the package docstring.
 
     `threads_per_run`: pin each run's process to that many cores (default: not pinned, every core, as
-    `mcrl train`; docs/performance.md, "A sweep's workers and their cores").
+    `mcrl train`; docs/performance.md, "A sweep's workers and their cores"). `shared_dir`: ``exp`` may hold other
+    files before the sweep's first run (`mcrl decide` runs its batches into the plan's directory).
     Raises MCRLError (before writing anything) on bad settings; a run that fails is reported in the
     result (`failed`) while the others go on."""
     # ---- validate everything before EXP exists
@@ -153,7 +155,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
     n_workers = workers or cls.default_workers(cores)
     threads = threads_per_run or max(1, cores // n_workers)
     exp = (Path(exp_dir) if exp_dir is not None else default_exp_dir(plan)).absolute()
-    old, entries = _merge_with_existing(plan, exp)
+    old, entries = _merge_with_existing(plan, exp, shared_dir)
     tracker = None
     if tracking or tracking_uri:
         from mcrl.sweep.tracking import Tracker  # imports MLflow: only when tracking

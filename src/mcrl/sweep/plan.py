@@ -1,7 +1,7 @@
 """Planning a sweep: a grid, command-line arguments, a YAML file or a recorded ``sweep.json`` -> runs.
 
 A ``SweepPlan`` is a list of ``RunPlan``s, each a named, resolved ``Config``. Every grid point is
-validated with ``resolve_config`` and every environment is made once (``_preflight``), so a bad sweep
+validated with ``resolve_config`` and every environment is made once (``preflight``), so a bad sweep
 fails here, before anything is written. This module also owns the format of ``EXP/sweep.json``
 (``RunPlan.entry`` writes its lines, ``load_sweep_json`` reads it; ``mcrl report`` reads it too).
 """
@@ -169,11 +169,11 @@ def build_plan(preset: str | None, grid: dict[str, list], fixed: dict[str, Any] 
     if len(set(names)) != len(names):  # distinct configs whose labels collapse to one name
         for i, r in enumerate(runs):
             r.name = f"{r.name}-{i}"
-    _preflight(runs)
+    preflight(runs)
     return SweepPlan(preset, {k: list(v) for k, v in grid.items()}, fixed, runs, source)
 
 
-def _preflight(runs: list[RunPlan]) -> None:
+def preflight(runs: list[RunPlan]) -> None:
     """What train() would reject only after starting: unknown or unsuitable environments."""
     from mcrl.envs import inspect, make_env  # makes environments: imported only when a plan is built
 
@@ -261,7 +261,7 @@ def plan_from_experiment(exp_dir: str | Path) -> SweepPlan:
                             dict(e.get("overrides") or {}), cfg))
     if not runs:
         raise MCRLError(f"{d / SWEEP_JSON} lists no runs: start a new sweep with --preset/--alphas or --file")
-    _preflight(runs)
+    preflight(runs)
     return SweepPlan(preset, dict(sweep.get("grid") or {}), dict(sweep.get("set") or {}), runs, "experiment")
 
 
