@@ -14,7 +14,8 @@ from matplotlib.image import imread
 from mcrl.analysis.experiment import load_experiment
 from mcrl.analysis.plots import plot_run
 from mcrl.analysis.report import write_report
-from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT, probability_of_improvement
+from mcrl.analysis.stats import (MIN_SEEDS_FOR_VERDICT, minimum_detectable_difference, probability_of_improvement,
+                                 seeds_to_detect)
 from mcrl.analysis.thesis import THESIS_RESULTS, thesis_experiment
 from mcrl.cli import main
 from mcrl.errors import MCRLError
@@ -286,7 +287,7 @@ def test_no_verdict_from_too_few_seeds(tmp_path: Path, n_seeds: int) -> None:
     plural = "s" if n_seeds > 1 else ""
     assert final[4] == f"{np.mean([s for s, _ in sac]):.3f} (no CI from {n_seeds} seed{plural}, need >= 3)"
     assert "[" not in final[6]
-    assert _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")[4] == few
+    assert _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")[5] == few
     assert f"at least {MIN_SEEDS_FOR_VERDICT} finished seeds" in md  # the rule is stated in the overview
 
 
@@ -299,14 +300,35 @@ def test_clear_difference_with_enough_seeds_gives_a_verdict(tmp_path: Path) -> N
     assert poi[2].startswith("1.000 [1.000, 1.000]") and poi[3] == "no clear difference (adjusted p = 0.1000)"
     assert "**Reproduced**: the thesis' claim that SAC-MC alpha=0.2" in md and "p = 0.0500" in md
     assert "too few seeds" not in md.split("## Learning")[1].split("## Provenance and method")[0]
-    # MDE = (z_.975 + z_.8) * sqrt(0.01/3 + 0.01/3); seeds to detect 0.6: 2.8016^2 * 0.02 / 0.36 -> 2
+    # at the verdict's test, the claim's one-sided one at 0.05 (the only claim against SAC):
+    # MDE = (z_.95 + z_.8) * sqrt(0.01/3 + 0.01/3); seeds to detect 0.6: 2.4865^2 * 0.02 / 0.36 -> 2
     mde = _row(_section(md, "How large a difference can these seeds detect"), "`alpha=0.2` vs `alpha=0`")
-    assert mde[1:] == ["3 / 3", "0.100 / 0.100", "0.600", "0.229", "2"]
+    assert mde[1:] == ["3 / 3", "0.100 / 0.100", "0.600", "one-sided X > Y, 0.05", "0.203", "2"]
     # with 5 seeds each the two-sided reading finds it too (p = 2/252)
     sac5, mc5 = sac + [(0.15, -44.0), (0.25, -38.0)], mc + [(0.75, -18.0), (0.85, -12.0)]
     md = write_report(_experiment(tmp_path / "exp5", {0.0: sac5, 0.2: mc5}), tmp_path / "rep5").read_text()
     poi = _row(_section(md, "IQM and probability of improvement"), "`alpha=0.2` > `alpha=0`")
     assert poi[3] == "better than SAC (adjusted p = 0.0079)" and poi[5] == poi[3]
+
+
+def test_detectable_difference_is_at_the_verdicts_test_and_level(tmp_path: Path) -> None:
+    """Three claims against SAC (0.2 above, 0.4 about the same, 0.8 below): each comparison's MDE and seeds are at
+    the test its verdict uses, at Holm's first level 0.05 / 3 (not two-sided at 0.05), and the table says which."""
+    sac = [0.10, 0.25, 0.30, 0.45, 0.50, 0.62]
+    arms = {0.0: sac, 0.2: [s + 0.2 for s in sac], 0.4: [s + 0.03 for s in sac], 0.8: [s - 0.08 for s in sac]}
+    exp = _experiment(tmp_path / "exp", {a: [(round(s, 2), -50 * (1 - s)) for s in v] for a, v in arms.items()})
+    sec = _section(write_report(exp, tmp_path / "rep").read_text(), "How large a difference can these seeds detect")
+    y = np.array([round(s, 2) for s in sac])
+    tests = {0.2: ("one-sided X > Y", "one-sided"), 0.4: ("two-sided (of 'about the same')", "two-sided"),
+             0.8: ("one-sided X < Y", "one-sided")}
+    for alpha, (test, sides) in tests.items():
+        x = np.array([round(s, 2) for s in arms[alpha]])
+        row = _row(sec, f"`alpha={alpha:g}` vs `alpha=0`")
+        assert row[4] == f"{test}, 0.0167 = 0.05 / 3"
+        assert row[5] == f"{minimum_detectable_difference(x, y, 0.05 / 3, 0.8, sides):.3f}"
+        assert row[6] == str(seeds_to_detect(x, y, x.mean() - y.mean(), 0.05 / 3, 0.8, sides))
+        assert row[5] != f"{minimum_detectable_difference(x, y):.3f}"  # not the unadjusted two-sided one
+    assert "'test, level'" in sec and "z_(1-a) + z_0.8" in sec
 
 
 # ------------------------------------------------------------------ final_eval.json, per-seed table

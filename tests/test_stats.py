@@ -144,6 +144,19 @@ def test_seeds_to_detect() -> None:
     assert stats.seeds_to_detect([1.0], [0.0, 0.5], 0.5) is None
 
 
+def test_detectable_difference_and_seeds_at_a_one_sided_adjusted_level() -> None:
+    """One-sided at a Holm level, as the verdicts test 'better' claims: z_{1-alpha}, not z_{1-alpha/2}."""
+    x, y = [0.2, 0.4, 0.6], [0.6, 0.8, 1.0]
+    z = 2.539185 + 0.841621  # z_{1 - 0.05/9} + z_0.8
+    assert stats.minimum_detectable_difference(x, y, 0.05 / 9, 0.8, "one-sided") == pytest.approx(
+        z * np.sqrt(0.08 / 3), rel=1e-5)
+    # n = z^2 (0.04 + 0.04) / 0.4^2 = 5.71 -> 6 (4 two-sided at 0.05)
+    assert stats.seeds_to_detect(x, y, 0.4, 0.05 / 9, 0.8, "one-sided") == 6
+    assert stats.seeds_to_detect(x, y, 0.4, 0.05, 0.8, "two-sided") == stats.seeds_to_detect(x, y, 0.4) == 4
+    with pytest.raises(ValueError, match="one-sided"):
+        stats.minimum_detectable_difference(x, y, sides="greater")
+
+
 def test_mean_difference_ci_contains_the_difference_and_narrows_with_seeds():
     rng = np.random.default_rng(1)
     small = stats.mean_difference_ci(rng.normal(1, 1, 5), rng.normal(0, 1, 5))

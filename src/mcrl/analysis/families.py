@@ -74,6 +74,7 @@ class ClaimResult:
     y_group: ConfigGroup | None = None
     what: str = ""  # the thesis' name for X, for the thesis section
     note: str = ""  # why there is no verdict, beyond the seeds
+    exploratory: bool = False  # a claim the registry does not declare against its baseline: no verdict
 
     @cached_property
     def effects(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -216,7 +217,8 @@ def report_claims(exp: Experiment, registry: Registry | None, root: Path | None 
             results.append(ClaimResult(f"{k.x.key} {k.kind} {k.y.key}", k.kind, k.by, f"`{k.x.key}`",
                                        f"`{k.y.key}`", x, y, t,
                                        Verdict(NOT_DECIDABLE, None, None, 0), fam, math.nan, k.source, k.x, k.y,
-                                       k.what, f"not declared in {fam.declared_in}: exploratory, no verdict"))
+                                       k.what, f"not declared in {fam.declared_in}: exploratory, no verdict",
+                                       exploratory=True))
         else:
             own.setdefault(id(k.y), []).append(k)
     for ks in own.values():

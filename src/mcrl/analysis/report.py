@@ -33,7 +33,7 @@ def build_report(exp: Experiment, registry: Registry | None = None) -> list[Bloc
     root = repo_root(registry.path) if registry else None
     claims = report_claims(exp, registry, root)
     return (summary(exp) + verdict_section(claims) + thesis_section(exp, claims) + intrinsic_section(exp, claims)
-            + results(exp) + provenance(exp, registry.shown(root) if registry else None))
+            + results(exp, claims) + provenance(exp, registry.shown(root) if registry else None))
 
 
 def write_report(experiment_dir: str | Path, out_dir: str | Path | None = None,

@@ -20,11 +20,14 @@ import numpy as np
 from mcrl.analysis.cells import (CONF, SEED, mean_cell, mean_ci, name, num, other_intrinsic, pvalue,
                                  sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
+from mcrl.analysis.claims import LEVEL
 from mcrl.analysis.experiment import ConfigGroup, Experiment
+from mcrl.analysis.families import ReportClaims
 from mcrl.analysis.hypothesis import fisher_exact, holm, rank_sum_test
 from mcrl.analysis.markdown import Block, Bullets, Figure, Heading, Paragraph, Table
 from mcrl.analysis.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
 from mcrl.analysis.runs import Run
+from mcrl.analysis.verdicts import level
 from mcrl.analysis.stats import (
     MIN_SEEDS_FOR_VERDICT,
     align_curves,
@@ -211,8 +214,25 @@ def _robust_stats(exp: Experiment) -> list[Block]:
     ]
 
 
-def _detectable(exp: Experiment) -> list[Block]:
-    """How large a difference in mean final success these seeds can detect, per comparison."""
+def _test_level(claims: ReportClaims | None, x: ConfigGroup, y: ConfigGroup) -> tuple[float, str, str, str]:
+    """(level, sides, in words, the claim's kind or "") of the test the verdicts run on X against Y: that of its
+    declared claim, at its family's first Holm level (as its power), one-sided for better / worse, two-sided for
+    differs and same (whose refutation, a difference beyond the margin, is two-sided); two-sided at ALPHA where
+    no claim is declared."""
+    r = next((r for r in claims.results if r.x_group is x and r.y_group is y and not r.exploratory),
+             None) if claims else None
+    if r is None:
+        return ALPHA, "two-sided", f"two-sided, {ALPHA} (no claim)", ""
+    sides = "one-sided" if r.kind in ("better", "worse") else "two-sided"
+    m = r.family.with_seeds
+    side = {"better": " X > Y", "worse": " X < Y", "same": " (of 'about the same')"}.get(r.kind, "")
+    words = f"{sides}{side}, {level(r.level)}" + (f" = {LEVEL} / {m}" if m > 1 else "")
+    return r.level, sides, words, r.kind
+
+
+def _detectable(exp: Experiment, claims: ReportClaims | None = None) -> list[Block]:
+    """How large a difference in mean final success these seeds can detect, per comparison, at the test and level
+    the verdicts use for it."""
     out: list[Block] = [Heading(2, "How large a difference can these seeds detect")]
     pairs = _comparisons(exp)
     if not pairs:
@@ -224,20 +244,31 @@ def _detectable(exp: Experiment) -> list[Block]:
         sx, sy = sx[np.isfinite(sx)], sy[np.isfinite(sy)]
         few = too_few(sx.size, sy.size)
         diff = float(sx.mean() - sy.mean()) if sx.size and sy.size else math.nan
-        mde = minimum_detectable_difference(sx, sy, ALPHA, POWER)
-        need = seeds_to_detect(sx, sy, diff, ALPHA, POWER)
+        a, sides, test, kind = _test_level(claims, x, y)
+        mde = minimum_detectable_difference(sx, sy, a, POWER, sides)
+        other_side = (kind == "better" and diff < 0) or (kind == "worse" and diff > 0)
+        need = None if other_side else seeds_to_detect(sx, sy, diff, a, POWER, sides)
         rows.append([f"`{x.key}` vs `{y.key}`", f"{sx.size} / {sy.size}",
                      f"{num(math.sqrt(sample_var(sx)), 3)} / {num(math.sqrt(sample_var(sy)), 3)}", num(diff, 3),
-                     few or num(mde, 3), few or ("n/a" if need is None else str(need))])
+                     test, few or num(mde, 3),
+                     few or ("n/a (the other side)" if other_side else "n/a" if need is None else str(need))])
     return out + [
-        Paragraph(f"The minimum detectable difference (MDE) is the smallest true difference in mean final success "
-              f"that a two-sided two-sample test at alpha = {ALPHA} finds with probability {POWER}, given the "
-              "seed counts and the standard deviations of final success observed here (Welch/normal "
-              "approximation: MDE = (z_0.975 + z_0.8) * sqrt(s_X^2/n_X + s_Y^2/n_Y)). A true difference smaller "
-              "than the MDE is likely to go unnoticed with these seeds. The last column is the number of seeds "
-              "per configuration at which the MDE would shrink to the observed difference (same spread assumed)."),
+        Paragraph("The minimum detectable difference (MDE) is the smallest true difference in mean final success "
+                  f"that a two-sample test finds with probability {POWER}, at the test and level the verdicts use "
+                  "for the comparison (column 'test, level'): one-sided for a claim that X lies above or below Y, "
+                  "two-sided for one that they differ or are about the same (whose refutation, a difference beyond "
+                  "the margin, is two-sided), at "
+                  f"the first Holm level of the claim's family ({LEVEL} / m, where its power is computed); "
+                  f"two-sided at {ALPHA} where no claim is declared. It is computed from the seed counts and the "
+                  "standard deviations of final success observed here (Welch/normal approximation: MDE = "
+                  "(z_(1-a) + z_0.8) * sqrt(s_X^2/n_X + s_Y^2/n_Y) one-sided at level a, z_(1-a/2) two-sided). A "
+                  "true difference smaller than the MDE is likely to go unnoticed with these seeds. The last column "
+                  "is the number of seeds per configuration at which the MDE, at the same test and level, would "
+                  "shrink to the observed difference (same spread assumed); none where the observed difference lies "
+                  "on the other side of a one-sided claim."),
         Table(["comparison", "seeds X / Y", "sd of final success X / Y", "observed difference X - Y",
-                   "minimum detectable difference", "seeds each to detect the observed difference"], rows),
+               "test, level", "minimum detectable difference", "seeds each to detect the observed difference"],
+              rows),
     ]
 
 
@@ -335,8 +366,8 @@ def _critic_section(exp: Experiment) -> list[Block]:
     ]
 
 
-def results(exp: Experiment) -> list[Block]:
+def results(exp: Experiment, claims: ReportClaims | None = None) -> list[Block]:
     """The sections after the verdicts and the thesis' comparison: final numbers, curves, effect sizes, what the
     seeds can detect, critics, the MC reward, every seed, and what is missing."""
-    return (_final_table(exp) + _learning_curves(exp) + _robust_stats(exp) + _detectable(exp) + _critic_section(exp)
-            + _mc_section(exp) + _per_seed_table(exp) + _missing_section(exp))
+    return (_final_table(exp) + _learning_curves(exp) + _robust_stats(exp) + _detectable(exp, claims)
+            + _critic_section(exp) + _mc_section(exp) + _per_seed_table(exp) + _missing_section(exp))

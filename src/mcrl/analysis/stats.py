@@ -301,31 +301,44 @@ def _z(p: float) -> float:
     return float(scipy.stats.norm.ppf(p))
 
 
-def minimum_detectable_difference(x: Any, y: Any, alpha: float = 0.05, power: float = 0.8) -> float:
-    """Smallest true difference of means that a two-sided two-sample test at level ``alpha`` detects
-    with probability ``power``, given the samples' spread and sizes.
+def _z_sum(alpha: float, power: float, sides: str) -> float:
+    """z_{1-alpha/2} + z_power for a two-sided test, z_{1-alpha} + z_power for a one-sided one."""
+    if sides not in ("two-sided", "one-sided"):
+        raise ValueError(f"sides must be 'two-sided' or 'one-sided', not {sides!r}")
+    return _z(1 - alpha / 2 if sides == "two-sided" else 1 - alpha) + _z(power)
 
-    Welch / normal approximation: ``(z_{1-alpha/2} + z_{power}) * sqrt(s_x^2/n_x + s_y^2/n_y)`` with
-    sample variances (ddof=1). NaN when either sample has fewer than 2 values (no variance).
+
+def minimum_detectable_difference(x: Any, y: Any, alpha: float = 0.05, power: float = 0.8,
+                                  sides: str = "two-sided") -> float:
+    """Smallest true difference of means that a two-sample test at level ``alpha`` (``sides``: "two-sided" or
+    "one-sided", in the direction of the difference) detects with probability ``power``, given the samples'
+    spread and sizes.
+
+    Welch / normal approximation: ``(z_{1-alpha/2} + z_{power}) * sqrt(s_x^2/n_x + s_y^2/n_y)`` with sample
+    variances (ddof=1), ``z_{1-alpha}`` one-sided. NaN when either sample has fewer than 2 values (no variance).
     """
     a, b = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    z = _z_sum(alpha, power, sides)
     if a.size < 2 or b.size < 2:
         return float("nan")
     se = np.sqrt(a.var(ddof=1) / a.size + b.var(ddof=1) / b.size)
-    return float((_z(1 - alpha / 2) + _z(power)) * se)
+    return float(z * se)
 
 
-def seeds_to_detect(x: Any, y: Any, difference: float, alpha: float = 0.05, power: float = 0.8) -> int | None:
-    """Seeds per configuration (the same for both) for :func:`minimum_detectable_difference` to reach
-    ``|difference|``, if the seeds spread as ``x`` and ``y`` do.
+def seeds_to_detect(x: Any, y: Any, difference: float, alpha: float = 0.05, power: float = 0.8,
+                    sides: str = "two-sided") -> int | None:
+    """Seeds per configuration (the same for both) for :func:`minimum_detectable_difference` (at the same
+    ``alpha``, ``power`` and ``sides``) to reach ``|difference|``, if the seeds spread as ``x`` and ``y`` do.
 
-    Solves ``(z_{1-alpha/2} + z_{power})^2 (s_x^2 + s_y^2) / n = difference^2`` for n, at least 2.
-    None when ``difference`` is 0 (no number of seeds suffices) or a sample has fewer than 2 values.
+    Solves ``(z_{1-alpha/2} + z_{power})^2 (s_x^2 + s_y^2) / n = difference^2`` for n (``z_{1-alpha}``
+    one-sided), at least 2. None when ``difference`` is 0 (no number of seeds suffices) or a sample has fewer
+    than 2 values.
     """
     a, b = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    z = _z_sum(alpha, power, sides)
     if a.size < 2 or b.size < 2 or not difference or not np.isfinite(difference):
         return None
-    n = (_z(1 - alpha / 2) + _z(power)) ** 2 * (a.var(ddof=1) + b.var(ddof=1)) / difference ** 2
+    n = z ** 2 * (a.var(ddof=1) + b.var(ddof=1)) / difference ** 2
     return max(2, int(np.ceil(n - 1e-9)))  # the tolerance keeps an exact solution from rounding up
 
 
