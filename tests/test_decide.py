@@ -247,6 +247,8 @@ def test_an_arm_whose_claims_are_decided_runs_no_more_seeds(tmp_path):
     assert rec["claims"]["hi-worse"]["decision"] == "futile" and rec["claims"]["mc-better"]["decision"] == "continue"
     st = runner.state(plan)
     assert st.next_batch() == {"sac": [1004, 1005, 1006, 1007], "mc": [1004, 1005, 1006, 1007]}
+    names = [r.name for r in runner.batch_plan(st).runs]  # seed-major: arms share machines and times alike
+    assert names[:4] == ["sac-s1000", "mc-s1000", "sac-s1001", "mc-s1001"] and len(names) == 16
 
 
 def test_a_record_cut_short_by_a_crash_is_not_a_look(tmp_path):

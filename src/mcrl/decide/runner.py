@@ -181,8 +181,12 @@ def batch_plan(st: State):
 
     plan = st.plan
     runs = []
-    for arm, seeds in st.next_batch().items():
-        for seed in st.seeds_of(arm):  # earlier seeds too: finished ones are skipped, a stopped one resumes
+    arms = list(st.next_batch())
+    # seed-major (every arm's first seed, then every arm's second ...): arms share machines and times alike, so a
+    # change of CPU between sessions (XLA's float results differ between CPUs) cannot fall on one arm
+    for i in range(len(st.seeds_of(arms[0])) if arms else 0):
+        for arm in arms:  # earlier seeds too: finished ones are skipped, a stopped one resumes
+            seed = st.seeds_of(arm)[i]
             ov = plan.overrides(arm, seed)
             try:
                 cfg = resolve_config(plan.preset, ov)
