@@ -326,3 +326,38 @@ def test_end_to_end_plan_on_fetchreach_survives_kill_9(tmp_path):
     assert len(rec["finals"]["sac"]) == 2 and rec["done"]
     sweep = json.loads((path.parent / "sweep.json").read_text())
     assert sorted(r["name"] for r in sweep["runs"]) == ["mc-s1000", "mc-s1001", "sac-s1000", "sac-s1001"]
+    # the report leads with the verdict and shows only looked-at runs: a finished run no look has used stays out
+    import shutil
+    from mcrl.analysis.report import write_report
+    shutil.copytree(runs / "sac-s1000", runs / "sac-s1002")
+    sweep["runs"].append({**sweep["runs"][0], "name": "sac-s1002", "seed": 1002})
+    (path.parent / "sweep.json").write_text(json.dumps(sweep))
+    text = write_report(path.parent).read_text()
+    assert text.index("Confirmatory verdict") < text.index("## ") + 40
+    assert "**not reproduced** at look 1" in text and "sac-s1000" in text and "sac-s1002" not in text
+
+
+def test_the_readme_leads_with_the_committed_plans_verdict():
+    """README.md's confirmatory block is what `mcrl report docs/confirmatory/fetchpush --readme README.md` writes
+    from the committed plan and looks: a look committed without regenerating the README fails here."""
+    from mcrl.decide.report import answer_markdown, readme_answer
+    root = Path(__file__).resolve().parents[1]
+    assert readme_answer(root / "README.md") == answer_markdown(root / "docs" / "confirmatory" / "fetchpush")
+
+
+def test_readme_answer_is_written_between_the_markers_only(tmp_path, capsys):
+    path = _plan(tmp_path, PLAN % ("holm", "pocock"))
+    _finish_batch(path, 1, {"sac": [0.0, 0.01, 0.02, 0.03], "mc": [0.9, 0.8, 0.85, 0.95], "hi": [0.5, 0.6, 0.7, 0.8]})
+    assert main(["decide", str(path), "--look"]) == 0
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n\nbefore\n<!-- confirmatory:start -->\nold\n<!-- confirmatory:end -->\nafter\n")
+    from mcrl.decide.report import answer_markdown, write_answer
+    answer = answer_markdown(path.parent)
+    assert "**reproduced** at look 1" in answer and "**futile** at look 1" in answer
+    assert write_answer(path.parent, readme) and not write_answer(path.parent, readme)
+    assert readme.read_text() == (f"# x\n\nbefore\n<!-- confirmatory:start -->\n{answer}\n"
+                                  "<!-- confirmatory:end -->\nafter\n")
+    readme.write_text("no markers\n")
+    assert main(["report", str(path.parent), "--readme", str(readme)]) == 2
+    assert "markers" in capsys.readouterr().err and readme.read_text() == "no markers\n"
+    assert not (path.parent / "report").exists()

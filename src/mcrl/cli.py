@@ -137,7 +137,18 @@ def cmd_report(args) -> int:
     require_all(REPORT_MODULES, None, "mcrl report")
     from mcrl.analysis.report import write_report
 
+    if args.readme:  # checked before the report is written: a bad README leaves nothing half done
+        from mcrl.decide.report import is_sequential, readme_answer, write_answer
+
+        if not is_sequential(args.experiment_dir):
+            raise MCRLError(f"--readme writes a sequential plan's verdict: {args.experiment_dir} has no plan.yaml")
+        if not Path(args.readme).is_file():
+            raise MCRLError(f"--readme {args.readme}: no such file; give the README that holds the answer block")
+        readme_answer(args.readme)  # raises when the markers are missing
     print(f"wrote {write_report(args.experiment_dir, args.out, fmt=args.format, extra_runs=args.with_dirs)}")
+    if args.readme:
+        changed = write_answer(args.experiment_dir, args.readme)
+        print(f"{'updated' if changed else 'unchanged'}: the confirmatory answer in {args.readme}")
     return 0
 
 
@@ -208,20 +219,8 @@ def cmd_decide(args) -> int:
     from mcrl.decide.plan import load_plan
 
     plan = load_plan(args.plan)
-    st = runner.state(plan)
     if args.dry_run:
-        print(f"plan {plan.path} ({plan.hash[:19]}...): {len(plan.arms)} arms, seeds {plan.seeds[0]}.."
-              f"{plan.seeds[-1]} ({plan.max_seeds} an arm at most), {plan.batch} an arm per look, family level "
-              f"{plan.level:g} one-sided ({plan.multiplicity}); {len(st.looks)} look(s) taken")
-        print(runner.format_boundary_table(plan))
-        if st.done:
-            print(f"decided at look {len(st.looks)} ({st.looks[-1]['decision']}): no run would start")
-            return 0
-        todo = runner.batch_plan(st)
-        for r in todo.runs:
-            if r.seed in st.next_batch().get(r.config_key, []):
-                print(f"{r.name}  [{r.config_key}, seed {r.seed}]  {r.overrides}")
-        print(f"look {len(st.looks) + 1} would need {len(todo.runs)} finished runs; nothing written (--dry-run)")
+        print(runner.dry_run(plan))
         return 0
     if args.look:
         print(runner.summary_line(runner.look(plan, runner.check_commit(plan, args.any_commit))))
@@ -306,6 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="more runs to include (repeatable): another experiment directory, a run directory, or a "
                    "directory of run directories (directly or in its runs/), e.g. reference arms with a peer.json; "
                    "=LABEL names its arm in the report (e.g. --with experiments/variant='SAC-MC, code variant')")
+    p.add_argument("--readme", help="a sequential plan's directory: also write its verdict between the "
+                   "<!-- confirmatory:start --> and <!-- confirmatory:end --> markers of this file (e.g. README.md)")
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("sweep", help="many runs (alphas x seeds, or a grid file) into one experiment directory",

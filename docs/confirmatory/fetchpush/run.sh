@@ -7,6 +7,8 @@
 #   bash docs/confirmatory/fetchpush/run.sh sync     # finished runs' small files and new looks here (then commit)
 #   bash docs/confirmatory/fetchpush/run.sh status   # looks taken, runs finished, runs in progress
 #   bash docs/confirmatory/fetchpush/run.sh stop     # SIGTERM: each running run saves at its episode's end
+#   bash docs/confirmatory/fetchpush/run.sh report   # the report (with stable-baselines3's 12 seeds beside, as
+#                                                    # exploratory) and the README's verdict, by main's mcrl
 #
 # The runs live in $WORK (default /work/repro/confirmatory): checkpoints and buffers never enter git. WORKERS runs at
 # once (default 2, one core each). A batch's look is taken by `mcrl decide` once all its runs have finished; sync
@@ -41,6 +43,9 @@ case "${1:-status}" in
          "$( [ -f "$HERE/looks.jsonl" ] && wc -l < "$HERE/looks.jsonl" || echo 0) committed"
     arm_status confirmatory "$WORK" "$HERE"
     pgrep -f "$DECIDE" > /dev/null && echo "mcrl decide is running (log $WORK.log)" || echo "mcrl decide is not running" ;;
+  report)
+    "$REPO/.venv/bin/mcrl" report "$HERE" --with "$REPO/docs/reproduction/fetchpush/sb3-sac=sb3-sac" \
+      --readme "$REPO/README.md" ;;
   stop)
     pkill -TERM -f "$DECIDE" || { echo "not running"; exit 0; }
     while pgrep -f "$DECIDE" > /dev/null; do sleep 2; done; echo "stopped" ;;
@@ -60,5 +65,5 @@ case "${1:-status}" in
     [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" \
       "mcrl decide plan.yaml --workers ${WORKERS:-2} --threads-per-run 1 (nice -n 10)" \
       "git checkout $COMMIT && XLA_FLAGS='--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1' mcrl train --preset fetchpush-sac --set intrinsic_alpha=A --seed N" ;;
-  *) echo "usage: $0 start|stop|sync|status" >&2; exit 2 ;;
+  *) echo "usage: $0 start|stop|sync|status|report" >&2; exit 2 ;;
 esac

@@ -51,15 +51,24 @@ def write_report(experiment_dir: str | Path, out_dir: str | Path | None = None,
     """
     if fmt not in ("md", "html"):
         raise MCRLError(f"unknown report format {fmt!r}: use --format md or --format html")
+    from mcrl.decide.report import is_sequential, sequential_report  # a sequential plan's directory
+
+    if is_sequential(experiment_dir):
+        blocks = sequential_report(experiment_dir, extra_runs)
+        return _write(blocks, Path(out_dir) if out_dir is not None else Path(experiment_dir) / "report", fmt,
+                      Path(experiment_dir).name)
     exp = load_experiment(experiment_dir, extra_runs)
     path = find_registry(exp.dir) if claims is None or claims is True else None if claims is False else Path(claims)
     blocks = build_report(exp, load_registry(path) if path else None)  # before creating OUT: a failure leaves nothing
-    out = Path(out_dir) if out_dir is not None else exp.dir / "report"
+    return _write(blocks, Path(out_dir) if out_dir is not None else exp.dir / "report", fmt, exp.dir.name)
+
+
+def _write(blocks: list[Block], out: Path, fmt: str, name: str) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     if fmt == "md":
         path = out / "report.md"
         path.write_text(to_markdown(blocks, out))
     else:
         path = out / "report.html"
-        path.write_text(to_html(blocks, f"mcrl report: {exp.dir.name}"))
+        path.write_text(to_html(blocks, f"mcrl report: {name}"))
     return path

@@ -233,6 +233,22 @@ def format_boundary_table(plan: Plan) -> str:
     return "\n".join(lines)
 
 
+def dry_run(plan: Plan) -> str:
+    """What `mcrl decide --dry-run` prints: the plan, its boundary table and the runs the next look needs."""
+    st = state(plan)
+    lines = [f"plan {plan.path} ({plan.hash[:19]}...): {len(plan.arms)} arms, seeds {plan.seeds[0]}..{plan.seeds[-1]} "
+             f"({plan.max_seeds} an arm at most), {plan.batch} an arm per look, family level {plan.level:g} one-sided "
+             f"({plan.multiplicity}); {len(st.looks)} look(s) taken", format_boundary_table(plan)]
+    if st.done:
+        return "\n".join(lines + [f"decided at look {len(st.looks)} ({st.looks[-1]['decision']}): no run would start"])
+    todo = batch_plan(st)
+    batch = st.next_batch()
+    lines += [f"{r.name}  [{r.config_key}, seed {r.seed}]  {r.overrides}" for r in todo.runs
+              if r.seed in batch.get(r.config_key, [])]
+    lines.append(f"look {len(st.looks) + 1} would need {len(todo.runs)} finished runs; nothing written (--dry-run)")
+    return "\n".join(lines)
+
+
 def summary_line(record: dict) -> str:
     parts = []
     for name, c in record["claims"].items():
@@ -300,5 +316,5 @@ class SweepIncomplete(MCRLError):
                          "`mcrl decide` command resumes it")
 
 
-__all__ = ["DECIDED", "LOOKS", "State", "SweepIncomplete", "boundary_table", "decide", "format_boundary_table",
-           "look", "read_looks", "state"]
+__all__ = ["DECIDED", "LOOKS", "State", "SweepIncomplete", "boundary_table", "decide", "dry_run",
+           "format_boundary_table", "look", "read_looks", "state"]
