@@ -313,9 +313,11 @@ def validate(cfg: Config) -> None:
         bad(f"intrinsic_state={cfg.intrinsic_state!r}: choose observation or full")
     if cfg.mc_reduction not in ("transition", "batch"):
         bad(f"mc_reduction={cfg.mc_reduction!r}: choose transition or batch")
-    if cfg.intrinsic not in intrinsic_rewards.names():
-        bad(f"intrinsic={cfg.intrinsic!r}: choose one of {', '.join(intrinsic_rewards.names())} "
-            "(mc: the thesis' MC reward; docs/intrinsic.md)")
+    if not intrinsic_rewards.known(cfg.intrinsic):
+        bad(f"intrinsic={cfg.intrinsic!r} is not a registered reward: choose one of "
+            f"{', '.join(intrinsic_rewards.names())} (docs/intrinsic.md), or install the package that declares it "
+            f"in the entry-point group {intrinsic_rewards.ENTRY_POINTS} (mcrl.algo.intrinsic.register lasts one "
+            "process)")
     if cfg.intrinsic != "mc" and cfg.mc_reduction == "batch":
         bad(f"mc_reduction=batch is the thesis code's MC variant (one batch-mean KL), not defined for "
             f"intrinsic={cfg.intrinsic}: drop it (mc_reduction=transition)")

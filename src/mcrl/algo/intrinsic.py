@@ -19,9 +19,12 @@ sampled batch after HER relabelling, its action and next state. Their raw values
 normaliser into [intrinsic_reward_low, intrinsic_reward_high] and are mixed with weight intrinsic_alpha. `key` is
 the reward's own (Disagreement's sample masks), so SAC's keys are the same with or without intrinsic models.
 
-Adding a reward: a module with the class, and one line in `_REGISTRY` (or `register(name, cls)` at run time).
-This module imports no JAX, so the config validates `intrinsic` against the registry (`names`) cheaply; a
-reward's module is imported when it is first built (`get`).
+Adding a reward: a module with the class, and one line in `_REGISTRY` (or `register(name, cls)` at run time). A
+reward in a package of its own declares it in the entry-point group `mcrl.intrinsic` (``mine = mine_pkg:Mine``):
+`register` lasts one process, and `mcrl eval`, `render`, `--resume` and a sweep's workers are other processes, so
+an installed package's declaration is how they find it again. This module imports no JAX, so the config
+validates `intrinsic` against the registry (`known`) cheaply; a reward's module is imported when it is first
+built (`get`).
 """
 from __future__ import annotations
 
@@ -29,8 +32,13 @@ import importlib
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
-__all__ = ["GENERIC_METRICS", "IntrinsicReward", "Raw", "Sizes", "get", "names", "register"]
+from mcrl.errors import MCRLError
 
+__all__ = ["ENTRY_POINTS", "GENERIC_METRICS", "IntrinsicReward", "Raw", "Sizes", "get", "known", "names",
+           "register"]
+
+# the entry-point group in which an installed package declares its rewards: name = "module:attribute"
+ENTRY_POINTS = "mcrl.intrinsic"
 # what a reward reports unless it names its own (`IntrinsicReward.metrics`): columns of metrics.csv
 GENERIC_METRICS = ("intrinsic_loss", "mean_raw_intrinsic")
 
@@ -100,20 +108,47 @@ _REGISTRY: dict[str, Any] = {
 
 def register(name: str, reward: Any) -> None:
     """Make `reward` (a class implementing `IntrinsicReward`, or "module:attribute" naming one) the value
-    `intrinsic=name` selects."""
+    `intrinsic=name` selects, in this process (an installed package declares it for every process: `ENTRY_POINTS`)."""
     _REGISTRY[name] = reward
 
 
+def _discover() -> None:
+    """Add the rewards installed packages declare (`ENTRY_POINTS`) as "module:attribute", imported on first use;
+    a name registered here keeps its entry."""
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=ENTRY_POINTS):
+        _REGISTRY.setdefault(ep.name, ep.value)
+
+
+def known(name: str) -> bool:
+    """Whether `intrinsic=name` selects a reward: registered, or declared by an installed package. The installed
+    packages are read only for a name not registered, so the built-in rewards cost no metadata scan."""
+    if name not in _REGISTRY:
+        _discover()
+    return name in _REGISTRY
+
+
 def names() -> tuple[str, ...]:
-    """The values `intrinsic` may take."""
+    """The values `intrinsic` may take, those installed packages declare included."""
+    _discover()
     return tuple(_REGISTRY)
 
 
 def get(name: str) -> type:
-    """The class registered as `name` (KeyError for an unknown name)."""
+    """The class registered as `name` (KeyError for an unknown name); MCRLError when its module cannot be
+    imported."""
+    if not known(name):
+        raise KeyError(name)
     entry = _REGISTRY[name]
     if isinstance(entry, str):
         module, _, attr = entry.partition(":")
-        entry = getattr(importlib.import_module(module), attr)
+        try:
+            entry = importlib.import_module(module)
+            for part in attr.split("."):  # an entry point's attribute may be dotted (module:Outer.Inner)
+                entry = getattr(entry, part)
+        except (ImportError, AttributeError) as e:
+            raise MCRLError(f"intrinsic reward {name!r} ({_REGISTRY[name]}) cannot be loaded: {type(e).__name__}: "
+                            f"{e}; reinstall the package that declares it (entry-point group {ENTRY_POINTS})") from None
         _REGISTRY[name] = entry
     return entry
