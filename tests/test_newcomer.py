@@ -83,3 +83,38 @@ def test_a_reward_from_an_installed_package_trains_and_evaluates_in_other_proces
     err = res.stderr.strip()
     assert res.returncode == 2 and len(err.splitlines()) == 1, err
     assert "'mine'" in err and "mcrl.intrinsic" in err and "install" in err
+
+
+# ----------------------------------------------------------------------------- the report of a FetchReach sweep
+sys.path.insert(0, str(Path(__file__).parent))
+from test_report import _section, _write_run  # noqa: E402  (the fake run directories of the report tests)
+
+
+def _reach_sweep(exp: Path, finals: dict[str, list[float]]) -> None:
+    """What `mcrl sweep --preset fetchreach-sac --alphas ... --seeds N --steps 1000` leaves, with these final
+    success rates per alpha: its own sweep.json lines and config.json files (the plan writes both)."""
+    from mcrl.sweep import plan_from_args
+
+    plan = plan_from_args("fetchreach-sac", ",".join(finals), len(next(iter(finals.values()))), {"total_steps": 1000})
+    for r in plan.runs:
+        sr = finals[f"{r.config.intrinsic_alpha:g}"][r.seed]
+        _write_run(exp / "runs" / r.name, r.config.intrinsic_alpha, r.seed, (sr, -10.0), config=r.config.to_dict(),
+                   final_eval={"success_rate": sr, "mean_return": -10.0, "episodes": 10})
+    (exp / "sweep.json").write_text(json.dumps({"preset": plan.preset, "runs": [r.entry() for r in plan.runs]}))
+
+
+def test_a_fetchreach_sweeps_verdicts_see_its_sac_arm(tmp_path):
+    """A task the thesis has no numbers for still has SAC-MC's claim against SAC; the sentence for a report
+    without claims names what is missing, not a SAC arm its tables show."""
+    from mcrl.analysis.report import write_report
+
+    _reach_sweep(tmp_path / "both", {"0": [0.1, 0.2, 0.3], "0.2": [0.7, 0.8, 0.9]})
+    verdicts = _section(write_report(tmp_path / "both", claims=False).read_text(), "Verdicts")
+    assert "No claim to decide" not in verdicts
+    row = next(ln for ln in verdicts.splitlines() if ln.startswith("| `alpha=0.2` > `alpha=0`"))
+    assert "3 / 3" in row and "fewer than" not in row
+
+    _reach_sweep(tmp_path / "sac", {"0": [0.1, 0.2, 0.3]})
+    verdicts = _section(write_report(tmp_path / "sac", claims=False).read_text(), "Verdicts")
+    assert "No claim to decide" in verdicts and "every finished arm is SAC" in verdicts
+    assert "no finished SAC arm" not in verdicts

@@ -2,7 +2,9 @@
 
 A report's arms imply claims (:func:`candidates`): SAC-MC alpha 0.2 and the thesis' code's variant better than each
 SAC arm, each arm with another intrinsic reward better than each SAC arm and different from each SAC-MC arm, and the
-thesis' alpha curve against mcrl's SAC (0.4 and 0.6 about the same, 0.8 and 1.0 worse). Where the claims registry
+thesis' alpha curve against mcrl's SAC (0.4 and 0.6 about the same, 0.8 and 1.0 worse). On a task the thesis has
+no numbers for (FetchReach), every SAC-MC arm is claimed better than each SAC arm, without a size, as an exploration
+bonus is. Where the claims registry
 (:mod:`mcrl.analysis.registry`) declares a family for the baseline, the claim is decided inside that family, from the
 registry's runs, so every report prints the same adjusted p-value for it; a claim the registry does not declare
 against such a baseline gets no verdict (exploratory). A baseline the registry does not know forms its family from
@@ -121,6 +123,9 @@ def candidates(exp: Experiment) -> list[Candidate]:
             out += [Candidate(x, y, "better", d, CODE_VARIANT if is_code_variant(x) else "SAC-MC alpha=0.2",
                               f"thesis, {THESIS_RESULTS[thesis or '']['tables']}")  # type: ignore[index]
                     for x in mc if math.isclose(x.mc_alpha or 0.0, 0.2)]
+        else:  # no thesis numbers to test: the thesis' direction alone, at every alpha (no curve to follow either)
+            out += [Candidate(x, y, "better", None, f"`{x.key}`", "the thesis' claim, on a task without its numbers")
+                    for x in mc]
         out += [Candidate(x, y, "better", d, f"`{x.key}`", "issue 29: an exploration bonus's claim") for x in others]
         if y.peer is None:  # the thesis' alpha curve, against the SAC the thesis ran: mcrl's
             for x in mc:

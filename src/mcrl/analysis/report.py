@@ -32,7 +32,7 @@ def build_report(exp: Experiment, registry: Registry | None = None) -> list[Bloc
     """Every section of the report, in order: the answer first, provenance last."""
     root = repo_root(registry.path) if registry else None
     claims = report_claims(exp, registry, root)
-    return (summary(exp) + verdict_section(claims) + thesis_section(exp, claims) + intrinsic_section(exp, claims)
+    return (summary(exp) + verdict_section(claims, exp) + thesis_section(exp, claims) + intrinsic_section(exp, claims)
             + results(exp, claims) + provenance(exp, registry.shown(root) if registry else None))
 
 

@@ -3,8 +3,9 @@ and the sentence that states one claim's tests, which the thesis sections share.
 
 from __future__ import annotations
 
-from mcrl.analysis.cells import interval, num, pvalue
+from mcrl.analysis.cells import interval, num, other_intrinsic, pvalue, reference_sac, sac_and_mc
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, outcome, statement
+from mcrl.analysis.experiment import Experiment
 from mcrl.analysis.families import ClaimResult, Family, ReportClaims
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT
@@ -51,12 +52,27 @@ def _family_note(f: Family) -> str:
     return f"{head}, Holm over the {f.with_seeds} with enough seeds"
 
 
-def verdict_section(claims: ReportClaims) -> list[Block]:
-    """The table of every claim, family by family."""
+def no_claim(exp: Experiment | None) -> str:
+    """Why a report decides no claim, from the arms it holds (the old sentence blamed a missing SAC arm even where
+    the tables showed one)."""
+    if exp is None:
+        return "No claim to decide: the report's arms imply none."
+    sac, mc = sac_and_mc(exp)
+    sacs, others = sac + reference_sac(exp), other_intrinsic(exp)
+    if not sacs:
+        return ("No claim to decide: the report has no finished SAC arm (intrinsic_alpha = 0), the baseline of every "
+                "claim; add one with `--with DIR`.")
+    if not mc and not others:
+        return "No claim to decide: every finished arm is SAC (intrinsic_alpha = 0), so there is nothing to compare."
+    return ("No claim to decide: the thesis' claims on this task are about SAC-MC alpha 0.2 (against any SAC) and "
+            "its alpha curve (against mcrl's SAC), and no arm here is one of them.")
+
+
+def verdict_section(claims: ReportClaims, exp: Experiment | None = None) -> list[Block]:
+    """The table of every claim, family by family; `exp` says why there is none."""
     out: list[Block] = [Heading(2, "Verdicts")]
     if not claims.results:
-        return out + [Paragraph("No claim to decide: the report has no SAC arm (mc_alpha = 0) with another arm to "
-                                "compare it with.")]
+        return out + [Paragraph(no_claim(exp))]
     reg = claims.registry
     where = (f"declared in {reg.shown(claims.root)} (the claims registry: one family per baseline arm, shared by "
              "every report that prints one of its claims)" if reg else "not declared in a claims registry (none was "
