@@ -118,3 +118,57 @@ def test_a_fetchreach_sweeps_verdicts_see_its_sac_arm(tmp_path):
     verdicts = _section(write_report(tmp_path / "sac", claims=False).read_text(), "Verdicts")
     assert "No claim to decide" in verdicts and "every finished arm is SAC" in verdicts
     assert "no finished SAC arm" not in verdicts
+
+
+# ----------------------------------------------------------------------------- a sweep's provenance
+def _tiny_sets() -> list[str]:
+    return [a for k, v in TINY.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+
+
+def _git_head() -> str | None:
+    """The commit of the mcrl this test imports, when it is a git checkout of itself (found apart from mcrl's
+    own code)."""
+    import mcrl
+
+    repo = Path(mcrl.__file__).resolve().parents[2]
+    res = subprocess.run(["git", "-C", str(repo), "rev-parse", "--show-toplevel", "HEAD"], capture_output=True,
+                         text=True)
+    if res.returncode != 0 or Path(res.stdout.split()[0]).resolve() != repo:
+        return None
+    return res.stdout.split()[1]
+
+
+def test_a_sweep_records_its_provenance_and_the_report_shows_it(tmp_path):
+    """Each `mcrl sweep` call into EXP adds its command, code, machine and times to EXP/provenance.json, keeping
+    what the file held; the report lists them; a provenance.json it cannot extend stops the sweep."""
+    from mcrl.analysis.report import write_report
+
+    exp = tmp_path / "exp"
+    args = ["sweep", "--preset", "fetchreach-sac", "--alphas", "0", "--seeds", "1", "--steps", "200", *_tiny_sets(),
+            "--exp", str(exp), "--workers", "1", "--no-progress"]
+    res = _run(CLI + args)
+    assert res.returncode == 0, res.stderr
+    prov = json.loads((exp / "provenance.json").read_text())
+    (first,) = prov["sweeps"]
+    assert first["command"].startswith("mcrl sweep --preset fetchreach-sac --alphas 0") and "--exp" in first["command"]
+    assert first["started"] <= first["ended"] and first["mcrl"] and first["machine"]
+    assert first.get("commit") == _git_head()
+
+    prov["note"] = "written by hand"  # a key of the committed experiments' kind
+    (exp / "provenance.json").write_text(json.dumps(prov))
+    res = _run(CLI + ["sweep", "--exp", str(exp), "--no-progress"])  # continues the sweep recorded there
+    assert res.returncode == 0, res.stderr
+    prov = json.loads((exp / "provenance.json").read_text())
+    assert prov["note"] == "written by hand" and prov["sweeps"][0] == first and len(prov["sweeps"]) == 2
+    assert prov["sweeps"][1]["command"] == f"mcrl sweep --exp {exp} --no-progress"
+
+    section = _section(write_report(exp, claims=False).read_text(), "Provenance and method")
+    assert "sweep call 1: `mcrl sweep --preset fetchreach-sac" in section and "sweep call 2:" in section
+    assert first["started"] in section and "written by hand" in section
+
+    (exp / "provenance.json").write_text("{not json")
+    sweep_json = (exp / "sweep.json").read_text()
+    res = _run(CLI + ["sweep", "--exp", str(exp), "--no-progress"])
+    err = res.stderr.strip()
+    assert res.returncode == 2 and len(err.splitlines()) == 1 and "provenance.json" in err, err
+    assert (exp / "provenance.json").read_text() == "{not json" and (exp / "sweep.json").read_text() == sweep_json

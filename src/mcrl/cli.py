@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import signal
 import sys
 from pathlib import Path
@@ -187,7 +188,7 @@ def cmd_sweep(args) -> int:
                               gpus_per_run=args.gpus_per_run, tracking=args.tracking,
                               tracking_uri=args.tracking_uri, retries=args.retries,
                               progress=not args.no_progress, group_size=args.group_size,
-                              env_workers=args.env_workers)
+                              env_workers=args.env_workers, command=shlex.join(["mcrl", *args.argv]))
     except KeyboardInterrupt:  # a second signal: the runs were killed, each keeps its last checkpoint
         print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' last checkpoints",
               file=sys.stderr)
@@ -375,6 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = sys.argv[1:] if argv is None else list(argv)  # as typed, for EXP/provenance.json
     try:
         return args.func(args)
     except MCRLError as e:

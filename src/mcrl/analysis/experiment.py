@@ -11,7 +11,8 @@ Reads ``EXP/sweep.json`` and ``EXP/runs/<name>/`` (docs/run-directory.md). Besid
   under ``EXP/runs/`` with a ``peer.json`` are read, and runs from other places can be added (``extra_runs``,
   ``mcrl report --with DIR``). A peer run without ``done`` counts as finished once it has ``final_eval.json``.
 - ``EXP/provenance.json`` ``{"commit", "machine", "command", "rerun_one_seed"}`` (more keys are shown as they
-  are; ``"machines"``, run name -> machine, is summarised by ``"machine"``), and that of each extra directory.
+  are; ``"machines"``, run name -> machine, is summarised by ``"machine"``; ``"sweeps"``, one entry per
+  ``mcrl sweep`` call, is :mod:`mcrl.sweep.provenance`'s), and that of each extra directory.
 
 Runs are grouped into configurations and named by :mod:`mcrl.analysis.grouping`.
 """
@@ -28,10 +29,9 @@ import numpy as np
 from mcrl.analysis.grouping import arms
 from mcrl.analysis.runs import Run
 from mcrl.errors import MCRLError
-from mcrl.run.rundir import (CONFIG, EVAL, FINAL_EVAL, METRICS, PEER, RUNS, SWEEP_JSON, is_done, read_columns,
-                             read_json)
+from mcrl.run.rundir import (CONFIG, EVAL, FINAL_EVAL, METRICS, PEER, PROVENANCE, RUNS, SWEEP_JSON, is_done,
+                             read_columns, read_json)
 
-PROVENANCE = "provenance.json"  # EXP/provenance.json, written by whoever ran the experiment
 ALPHA_ALIAS = "intrinsic_alpha"  # mc_alpha's name in configs written after its rename to intrinsic_* keys
 
 

@@ -70,7 +70,25 @@ def _resumed(r: Run, at: list[int]) -> str:
 
 
 def _provenance(prov: dict[str, object]) -> list[str]:
-    """provenance.json's items, the known keys first; "machines" (run -> machine) is what "machine" summarises."""
+    """provenance.json's items, the known keys first, then each `mcrl sweep` call (`mcrl.sweep.provenance`);
+    "machines" (run -> machine) is what "machine" summarises."""
     known = {"commit": "code commit", "machine": "machine", "command": "command", "rerun_one_seed": "re-run one seed"}
-    order = [k for k in known if k in prov] + sorted(k for k in prov if k not in known and k != "machines")
-    return [f"{known.get(k, k)}: {code(str(prov[k]))}" for k in order]
+    order = [k for k in known if k in prov] + sorted(k for k in prov if k not in known and k not in ("machines",
+                                                                                                   "sweeps"))
+    calls = prov.get("sweeps")
+    calls = calls if isinstance(calls, list) else []
+    return ([f"{known.get(k, k)}: {code(str(prov[k]))}" for k in order]
+            + [_sweep_call(i + 1, c) for i, c in enumerate(calls)])
+
+
+def _sweep_call(i: int, c: object) -> str:
+    """'sweep call 1: `mcrl sweep ...`, started 2026-12-03T10:00:00+00:00, ended ...; mcrl 0.1.0, commit
+    `5c418ac...`; machine `AMD EPYC ..., 2 cores` (host `box`)'."""
+    if not isinstance(c, dict):
+        return f"sweep call {i}: {code(str(c))}"
+    ended = f"ended {c['ended']}" if c.get("ended") else "no end recorded (killed, or still running)"
+    commit = (f", commit {code(c['commit'])}" + (" with uncommitted changes" if c.get("dirty") else "")
+              if c.get("commit") else ", not a git checkout")
+    host = f" (host {code(c['host'])})" if c.get("host") else ""
+    return (f"sweep call {i}: {code(c.get('command', '?'))}, started {c.get('started', '?')}, {ended}; "
+            f"mcrl {c.get('mcrl', '?')}{commit}; machine {code(c.get('machine', '?'))}{host}")

@@ -44,6 +44,7 @@ VIDEOS = "videos"
 LOCK = ".lock"  # flock-ed by the run's one writer (mcrl.run.lock)
 SWEEP_JSON = "sweep.json"  # EXP/sweep.json: the runs of a sweep
 RUNS = "runs"              # EXP/runs/<name>/: its run directories
+PROVENANCE = "provenance.json"  # EXP/provenance.json: who ran the experiment, how (mcrl.sweep.provenance)
 SMALL_FILES = (CONFIG, METRICS, EVAL, FINAL_EVAL, PEER, DONE)  # what an experiment commits of a finished run
 
 # metrics.csv: the loop's columns around the gradient step's metrics (mcrl.algo.metrics)

@@ -31,6 +31,8 @@ time, since a local worker must pin its cores before jax is imported):
 - ``ray_backend``: the Ray backend, one Ray task per run, shipping files back when the worker cannot
   see ``EXP``.
 - ``tracking``: MLflow logging of finished runs (imported only with ``--tracking``).
+- ``provenance``: ``EXP/provenance.json``, one entry per sweep call: command, mcrl version and commit, machine,
+  start and end.
 - ``experiment``: ``run_sweep``: validate, lock ``EXP``, write ``sweep.json``, hand runs to a backend.
 """
 from mcrl.sweep.driver import SweepResult

@@ -2,8 +2,9 @@
 
 In order: validate every setting (backend, counts, ``EXP`` against a sweep already in it, the backend's own
 check, e.g. the Ray address, the tracking URI) while nothing is written; start the backend (`mcrl.sweep.backend`);
-then lock ``EXP``, write ``EXP/sweep.json`` (the union of the runs there and the plan's), skip finished runs and
-hand the others to the driver loop (`mcrl.sweep.driver.drive`). Runs that finish are logged to MLflow in a
+then lock ``EXP``, add this call to ``EXP/provenance.json`` (`mcrl.sweep.provenance`), write ``EXP/sweep.json``
+(the union of the runs there and the plan's), skip finished runs and hand the others to the driver loop
+(`mcrl.sweep.driver.drive`). Runs that finish are logged to MLflow in a
 background thread (``tracking``), so the next runs start meanwhile. On SIGINT or SIGTERM the driver starts no more
 runs and lets the running ones save at their episode ends (``SweepResult.stopped_by``).
 """
@@ -11,6 +12,8 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
+import sys
 import time
 import uuid
 from pathlib import Path
@@ -22,6 +25,7 @@ from mcrl.run import lock as locks
 from mcrl.run import stop
 from mcrl.run.rundir import SWEEP_JSON
 import mcrl.sweep.backend as backends
+import mcrl.sweep.provenance as provenance
 from mcrl.sweep.driver import Driver, SweepResult, drive
 from mcrl.sweep.files import RUNS, run_dir, run_status
 from mcrl.sweep.plan import RunPlan, SweepPlan, jsonable, load_sweep_json, safe_name
@@ -120,12 +124,14 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
               threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
               tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
               out: Callable[[str], None] | None = None, group_size: int | None = None,
-              env_workers: int = 0, shared_dir: bool = False) -> SweepResult:
+              env_workers: int = 0, shared_dir: bool = False, command: str | None = None) -> SweepResult:
     """Run every unfinished run of `plan` into one experiment directory; see the package docstring.
 
     `threads_per_run`: pin each run's process to that many cores (default: not pinned, every core, as
     `mcrl train`; docs/performance.md, "A sweep's workers and their cores"). `shared_dir`: ``exp`` may hold other
-    files before the sweep's first run (`mcrl decide` runs its batches into the plan's directory).
+    files before the sweep's first run (`mcrl decide` runs its batches into the plan's directory, and records its
+    looks itself: no provenance.json is written there). `command`: the command line provenance.json records
+    (default: this process's, `sys.argv`).
     Raises MCRLError (before writing anything) on bad settings; a run that fails is reported in the
     result (`failed`) while the others go on."""
     # ---- validate everything before EXP exists
@@ -169,7 +175,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
     # ---- start
     runner = cls(settings)  # e.g. connects to Ray
     result = SweepResult(exp)
-    held = drv = log_pool = None
+    held = drv = log_pool = recorded = None
     log_jobs: list = []
 
     def log(run: RunPlan) -> None:
@@ -189,6 +195,8 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         except locks.Locked as e:
             raise MCRLError(f"another `mcrl sweep` is running on {exp} ({e.holder}): wait for it or stop it "
                             "first") from None
+        if not shared_dir:  # before sweep.json: a provenance.json it cannot extend stops the sweep writing nothing
+            recorded = provenance.start(exp, command if command is not None else shlex.join(sys.argv))
         grid, fixed = merged_grid_and_set(old, plan)
         doc = {"preset": plan.preset, "id": settings.sweep_id,
                "created": (old or {}).get("created") or time.strftime("%Y-%m-%dT%H:%M:%S"),
@@ -235,6 +243,11 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
             log_pool.shutdown(wait=False, cancel_futures=True)
         if drv is not None:
             drv.close()
+        if recorded is not None:
+            try:
+                provenance.end(exp, recorded)
+            except (OSError, MCRLError):  # the record keeps ended: null; the sweep's own error, if any, stays the error
+                pass
         if held is not None:
             held.release()
         runner.close()
