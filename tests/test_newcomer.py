@@ -172,3 +172,26 @@ def test_a_sweep_records_its_provenance_and_the_report_shows_it(tmp_path):
     err = res.stderr.strip()
     assert res.returncode == 2 and len(err.splitlines()) == 1 and "provenance.json" in err, err
     assert (exp / "provenance.json").read_text() == "{not json" and (exp / "sweep.json").read_text() == sweep_json
+
+
+# ----------------------------------------------------------------------------- a run's default name
+def test_a_default_run_name_shows_the_settings_that_differ_from_its_preset():
+    """`mcrl train --preset fetchreach-sac --set intrinsic=rnd --set intrinsic_alpha=0.2` is not named like plain
+    SAC: the name holds the reward and its weight; bookkeeping (seed aside) stays out; any number of settings
+    keeps a name a file system takes."""
+    from mcrl.config import parse_set, resolve_config
+    from mcrl.run.member import default_run_dir
+
+    def name(*sets: str) -> str:
+        return default_run_dir(resolve_config("fetchreach-sac", parse_set(list(sets)))).name
+
+    plain, rnd = name(), name("intrinsic=rnd", "intrinsic_alpha=0.2")
+    assert plain.startswith("fetchreach-sac-s0-")
+    assert rnd.startswith("fetchreach-sac-") and not rnd.startswith("fetchreach-sac-s0-")
+    assert "rnd" in rnd and "0.2" in rnd
+    assert name("log_every=100", "eval_episodes=3").startswith("fetchreach-sac-s0-")  # how it is recorded
+    many = name(*(f"{k}={v}" for k, v in [("batch_size", 128), ("hidden_sizes", "[300, 300, 300, 300]"),
+                                          ("intrinsic_hidden_sizes", "[300, 300, 300, 300, 300]"), ("tau", 0.01),
+                                          ("gamma", 0.95), ("learning_rate", 0.001), ("intrinsic_lr", 0.001),
+                                          ("env_kwargs", "{reward_type: dense}"), ("her_k", 8)]))
+    assert len(many) < 200 and "/" not in many and " " not in many

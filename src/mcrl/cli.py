@@ -263,7 +263,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int)
     t.add_argument("--steps", type=int, help="total environment steps")
     t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
-    t.add_argument("--run-dir", type=Path, help="where to write the run (default: runs/<preset>-s<seed>-<time>)")
+    t.add_argument("--run-dir", type=Path, help="where to write the run (default: runs/<preset>-<settings that "
+                   "differ from it>-s<seed>-<time>, e.g. runs/fetchreach-sac-intrinsic=rnd-a0.2-s0-<time>)")
     t.add_argument("--out-dir", help="parent of the default run directory")
     t.add_argument("--resume", metavar="RUN_DIR", help="continue a killed run from its newest checkpoint")
     t.add_argument("--video-every", type=int, help="record an evaluation video every N steps")

@@ -156,8 +156,7 @@ class Member:
 
 
 def default_run_dir(cfg: Config) -> Path:
-    name = cfg.preset or f"{cfg.env_id}-a{cfg.intrinsic_alpha:g}"
-    return Path(cfg.out_dir) / f"{name}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    return Path(cfg.out_dir) / f"{rundir.run_name(cfg)}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[Member, TrainState, Diagnostics]:

@@ -19,17 +19,19 @@ An experiment directory (``mcrl sweep``) holds ``EXP/sweep.json`` (its runs) and
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from mcrl.algo.metrics import BOUNDS, RENAMED_COLUMNS, UPDATE_METRICS
-from mcrl.config import Config
+from mcrl.config import PRESETS, Config, resolve_config
 from mcrl.errors import MCRLError
 
 CONFIG = "config.json"
@@ -226,3 +228,48 @@ def write_latest(run_dir: str | Path, name: str) -> None:
     tmp = root / f".{LATEST}.tmp"
     tmp.write_text(name)
     os.replace(tmp, root / LATEST)
+
+
+# ----------------------------------------------------------------------------- names
+# Keys that say how a run is recorded and how long it runs, not what it learns: left out of its default name.
+UNNAMED = ("seed", "out_dir", "preset", "total_steps", "eval_every", "eval_episodes", "final_eval_episodes",
+           "log_every", "checkpoint_every", "keep_checkpoints", "save_buffer", "video_every")
+NAME_SETTINGS_MAX = 100  # characters of settings in a default name; those beyond are counted ("+2"), not named
+
+
+def label_value(v: Any) -> str:
+    """A setting's value as run names and configuration labels write it: 0.2, true, 64x64, null."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, (list, tuple)):
+        return "x".join(label_value(x) for x in v)
+    if v is None:
+        return "null"
+    if isinstance(v, dict):
+        return json.dumps(v, sort_keys=True, separators=(",", ":"))
+    return str(v)
+
+
+def run_name(cfg: Config) -> str:
+    """A run's default name before its seed and start time: its preset, then every setting that differs from the
+    preset, the weight as a sweep names it (`mcrl train --preset fetchreach-sac --set intrinsic=rnd --set
+    intrinsic_alpha=0.2`: 'fetchreach-sac-intrinsic=rnd-a0.2'). Without a preset: the environment and the weight,
+    then the settings that differ from the defaults. A run trained as the preset has just the preset's name."""
+    if cfg.preset in PRESETS:
+        name, base = cfg.preset, resolve_config(cfg.preset)
+    else:
+        name = f"{cfg.env_id}-a{label_value(cfg.intrinsic_alpha)}"
+        base = Config(env_id=cfg.env_id, intrinsic_alpha=cfg.intrinsic_alpha)
+    parts = [f"a{label_value(v)}" if f.name == "intrinsic_alpha" else f"{f.name}={label_value(v)}"
+             for f in dataclasses.fields(Config)
+             if f.name not in UNNAMED and (v := getattr(cfg, f.name)) != getattr(base, f.name)]
+    shown: list[str] = []
+    for part in parts:
+        if len("-".join([*shown, part])) > NAME_SETTINGS_MAX:
+            break
+        shown.append(part)
+    if len(shown) < len(parts):
+        shown.append(f"+{len(parts) - len(shown)}")
+    return re.sub(r"[^A-Za-z0-9._=+-]", "_", "-".join([name, *shown]))  # a directory name, as sweeps make them

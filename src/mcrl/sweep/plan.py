@@ -19,6 +19,7 @@ import yaml
 from mcrl.config import RENAMED, Config, canonical, resolve_config, stored
 from mcrl.errors import MCRLError
 from mcrl.run.rundir import SWEEP_JSON
+from mcrl.run.rundir import label_value as _fmt  # run names and labels write values as `mcrl train`'s names do
 
 SWEEP_FILE_KEYS = ("preset", "grid", "set", "seeds")
 # Short names in configuration labels and run names. A renamed key keeps the name it had in labels and run names
@@ -54,20 +55,6 @@ class SweepPlan:
 def jsonable(x: Any) -> Any:
     """`x` as it reads back from JSON (tuples become lists, anything else its str)."""
     return json.loads(json.dumps(x, default=str))
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
-        return f"{v:g}"
-    if isinstance(v, (list, tuple)):
-        return "x".join(_fmt(x) for x in v)
-    if v is None:
-        return "null"
-    if isinstance(v, dict):
-        return json.dumps(v, sort_keys=True, separators=(",", ":"))
-    return str(v)
 
 
 def safe_name(s: str) -> str:
