@@ -195,3 +195,34 @@ def test_a_default_run_name_shows_the_settings_that_differ_from_its_preset():
                                           ("gamma", 0.95), ("learning_rate", 0.001), ("intrinsic_lr", 0.001),
                                           ("env_kwargs", "{reward_type: dense}"), ("her_k", 8)]))
     assert len(many) < 200 and "/" not in many and " " not in many
+
+
+# ----------------------------------------------------------------------------- mcrl measure
+def test_measure_says_which_transitions_each_mean_is_over(tmp_path, capsys):
+    """The printed held-out mean is over the held-out fifth; the file holds every transition, and the line that
+    names it gives that file's mean."""
+    import re
+
+    import numpy as np
+
+    from mcrl.algo.mc import measure
+    from mcrl.cli import main
+
+    rng = np.random.default_rng(0)
+    s, a = rng.normal(size=(300, 3)).astype(np.float32), rng.normal(size=(300, 2)).astype(np.float32)
+    s2 = s + 0.3 * a @ np.ones((2, 3), np.float32) + 0.1 * rng.normal(size=(300, 3)).astype(np.float32)
+    np.savez(tmp_path / "data.npz", states=s, actions=a, next_states=s2)
+    out = tmp_path / "kl.npy"
+    opts = ["--max-steps", "100", "--hidden", "16", "16", "--no-progress"]
+    assert main(["measure", str(tmp_path / "data.npz"), "--out", str(out), *opts]) == 0
+    text = capsys.readouterr().out
+    per = np.load(out)
+    res = measure(s, a, s2, hidden=(16, 16), max_steps=100)  # the same fit, from Python
+    held = len(res.heldout)
+    assert 0 < held < len(per) and res.mean_kl == float(per[res.heldout].mean())
+    m = re.search(r"mean MC \(KL per transition\): ([\d.]+) nats over the (\d+) held-out transitions .*"
+                  r"over all (\d+): ([\d.]+) nats", text)
+    assert m, text
+    assert float(m[1]) == round(res.mean_kl, 6) and int(m[2]) == held
+    assert int(m[3]) == len(per) and float(m[4]) == round(float(per.mean()), 6)
+    assert f"of all {len(per)} transitions (mean {per.mean():.6f} nats) written to {out}" in text

@@ -111,8 +111,10 @@ def cmd_measure(args) -> int:
                   max_steps=args.max_steps, seed=args.seed, progress=progress if bar else None)
     if bar:
         bar.close()
-    print(f"mean MC (KL per transition): {res.mean_kl:.6f} nats  "
-          f"[held-out NLL {res.heldout_nll:.4f} at step {res.steps}, {len(s)} transitions]")
+    n, held, mean_all = len(s), len(res.heldout), float(res.per_transition_kl.mean())  # which set each number is over
+    print(f"mean MC (KL per transition): {res.mean_kl:.6f} nats over the {held} held-out transitions (the models were "
+          f"fitted on the other {n - held}); over all {n}: {mean_all:.6f} nats  [held-out NLL {res.heldout_nll:.4f} "
+          f"at step {res.steps}]")
     if args.out:
         out = Path(args.out)
         tmp = out.with_name(out.name + ".tmp")
@@ -122,7 +124,7 @@ def cmd_measure(args) -> int:
             with open(tmp, "wb") as f:
                 np.save(f, res.per_transition_kl)
         os.replace(tmp, out)
-        print(f"per-transition KL written to {out}")
+        print(f"per-transition KL of all {n} transitions (mean {mean_all:.6f} nats) written to {out}")
     return 0
 
 

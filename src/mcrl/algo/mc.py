@@ -174,10 +174,11 @@ def load_transitions(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 @dataclass
 class MeasureResult:
-    mean_kl: float  # nats, mean over held-out transitions
-    per_transition_kl: np.ndarray  # for every input transition
+    mean_kl: float  # nats, mean over the held-out transitions (`heldout`), which no model was fitted on
+    per_transition_kl: np.ndarray  # for every input transition, held out or fitted on
     steps: int  # gradient steps taken (best held-out NLL)
     heldout_nll: float
+    heldout: np.ndarray | None = None  # the held-out transitions' indices, ascending
 
 
 def measure(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray, *, hidden=(256,) * 5,
@@ -240,4 +241,4 @@ def measure(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray, *,
     _, kl_all = evaluate(params, s_n, a_n, s2_n)
     kl_all = np.asarray(kl_all, np.float64)
     return MeasureResult(mean_kl=float(kl_all[val].mean()), per_transition_kl=kl_all, steps=t_best,
-                         heldout_nll=v_loss)
+                         heldout_nll=v_loss, heldout=np.sort(val))
