@@ -226,3 +226,19 @@ def test_measure_says_which_transitions_each_mean_is_over(tmp_path, capsys):
     assert float(m[1]) == round(res.mean_kl, 6) and int(m[2]) == held
     assert int(m[3]) == len(per) and float(m[4]) == round(float(per.mean()), 6)
     assert f"of all {len(per)} transitions (mean {per.mean():.6f} nats) written to {out}" in text
+
+
+# ----------------------------------------------------------------------------- an environment id without a version
+def test_an_env_id_without_a_version_is_stored_as_the_one_that_ran(tmp_path, capsys):
+    """`--env FetchReach` trains the newest FetchReach; config.json names that version, not "FetchReach"."""
+    import gymnasium as gym
+
+    from mcrl.cli import main
+    from mcrl.envs import register_envs
+
+    register_envs()
+    newest = max(int(k.rsplit("-v", 1)[1]) for k in gym.registry if k.startswith("FetchReach-v"))
+    run = tmp_path / "run"
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in {**TINY, "eval_every": 0, "eval_episodes": 1}.items()]
+    assert main(["train", "--env", "FetchReach", "--steps", "60", *sets, "--run-dir", str(run), "--no-progress"]) == 0
+    assert json.loads((run / "config.json").read_text())["env_id"] == f"FetchReach-v{newest}"

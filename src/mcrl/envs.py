@@ -1,6 +1,7 @@
 """Environment construction and the observation / action / success conventions mcrl relies on."""
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,6 +75,23 @@ class EnvSpec:
     def uses_her(self, cfg: Config) -> bool:
         """HER is on when asked for, or by default for goal-conditioned Dict environments."""
         return self.goal_env if cfg.her is None else bool(cfg.her)
+
+
+def resolve_env_id(cfg: Config) -> Config:
+    """`cfg` with the id gymnasium makes for its `env_id`: an id without a version (FetchReach) is the newest version
+    registered (FetchReach-v4), as `gym.make` picks it, so config.json names the environment that ran, not one a
+    later release may change. An id gymnasium does not know is left as given, for `make_env` to refuse."""
+    from gymnasium.envs.registration import find_highest_version, get_env_id, parse_env_id
+
+    register_envs()
+    if cfg.env_id in gym.registry:
+        return cfg
+    try:
+        ns, name, version = parse_env_id(cfg.env_id)
+    except gym.error.Error:
+        return cfg
+    latest = find_highest_version(ns, name) if version is None else None
+    return cfg if latest is None else dataclasses.replace(cfg, env_id=get_env_id(ns, name, latest))
 
 
 def make_env(cfg: Config, render_mode: str | None = None) -> gym.Env:

@@ -27,6 +27,7 @@ from typing import Callable
 import numpy as np
 
 from mcrl.config import Config
+from mcrl.envs import resolve_env_id
 from mcrl.errors import MCRLError
 from mcrl.progress import progress as progress_bar
 from mcrl.run import rundir, stop
@@ -133,6 +134,7 @@ def train_runs(cfgs: list[Config], run_dirs: list[Path | str | None], resume: bo
     if video is None and any(c.video_every for c in cfgs):
         raise MCRLError(f"video_every={cfgs[0].video_every} records evaluation videos, and this call passes no video "
                         "step: use mcrl.train or `mcrl train`, or pass video=mcrl.video.render.record_training_video")
+    cfgs = [resolve_env_id(c) for c in cfgs]  # config.json and the run's name get the id gymnasium makes
     members, states, diags = [], [], []
     pool = bar = None
     ok = False
