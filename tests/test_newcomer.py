@@ -8,6 +8,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 # tests/test_sweep.py's tiny sizes: these tests check plumbing, not learning
 TINY = {"hidden_sizes": [64, 64], "intrinsic_hidden_sizes": [64, 64], "batch_size": 64, "buffer_size": 20_000,
         "eval_every": 150, "eval_episodes": 2, "log_every": 100, "learning_starts": 100, "checkpoint_every": 100}
@@ -228,17 +230,50 @@ def test_measure_says_which_transitions_each_mean_is_over(tmp_path, capsys):
     assert f"of all {len(per)} transitions (mean {per.mean():.6f} nats) written to {out}" in text
 
 
-# ----------------------------------------------------------------------------- an environment id without a version
-def test_an_env_id_without_a_version_is_stored_as_the_one_that_ran(tmp_path, capsys):
+# ----------------------------------------------------------------------------- a run from `--env FetchReach`
+@pytest.fixture(scope="module")
+def reach_run(tmp_path_factory) -> Path:
+    """`mcrl train --env FetchReach` (no version), 60 steps: one evaluation, at the end."""
+    from mcrl.cli import main
+
+    run = tmp_path_factory.mktemp("reach") / "run"
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in {**TINY, "eval_every": 0, "eval_episodes": 1}.items()]
+    assert main(["train", "--env", "FetchReach", "--steps", "60", *sets, "--run-dir", str(run), "--no-progress"]) == 0
+    return run
+
+
+def test_an_env_id_without_a_version_is_stored_as_the_one_that_ran(reach_run):
     """`--env FetchReach` trains the newest FetchReach; config.json names that version, not "FetchReach"."""
     import gymnasium as gym
 
-    from mcrl.cli import main
     from mcrl.envs import register_envs
 
     register_envs()
     newest = max(int(k.rsplit("-v", 1)[1]) for k in gym.registry if k.startswith("FetchReach-v"))
+    assert json.loads((reach_run / "config.json").read_text())["env_id"] == f"FetchReach-v{newest}"
+
+
+# ----------------------------------------------------------------------------- TensorBoard, and a run without success
+def test_tensorboard_has_one_tag_per_evaluation_quantity(reach_run):
+    """An evaluation's success rate and return are eval/success_rate and eval/mean_return, at the evaluation's
+    step; metrics.csv's copies of them (eval_*) add no second tag."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(reach_run))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"eval/success_rate", "eval/mean_return", "train/episodes"} <= tags
+    assert not [t for t in tags if "eval_" in t], tags
+
+
+def test_a_run_without_a_success_signal_prints_n_a(tmp_path, capsys):
+    """Pendulum has no success flag: `mcrl train` says 'n/a', as `mcrl eval` and sweeps do, not 'None'."""
+    from mcrl.cli import main
+
+    sets = [f"--set={k}={json.dumps(v)}" for k, v in {**TINY, "eval_every": 0, "eval_episodes": 1, "her": False}.items()]
     run = tmp_path / "run"
-    sets = [f"--set={k}={json.dumps(v)}" for k, v in {**TINY, "eval_every": 0, "eval_episodes": 1}.items()]
-    assert main(["train", "--env", "FetchReach", "--steps", "60", *sets, "--run-dir", str(run), "--no-progress"]) == 0
-    assert json.loads((run / "config.json").read_text())["env_id"] == f"FetchReach-v{newest}"
+    assert main(["train", "--env", "Pendulum-v1", "--steps", "60", *sets, "--run-dir", str(run), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "final evaluation: success rate n/a," in out and "None" not in out
+    assert main(["eval", str(run), "--episodes", "1", "--no-progress"]) == 0
+    assert "success rate: n/a" in capsys.readouterr().out

@@ -60,7 +60,7 @@ def cmd_train(args) -> int:
     print(f"run directory: {run_dir}")
     if summary:
         sr = summary.get("success_rate")
-        print(f"final evaluation: success rate {sr if sr is None else f'{sr:.2f}'}, "
+        print(f"final evaluation: success rate {'n/a' if sr is None else f'{sr:.2f}'}, "
               f"mean return {summary.get('mean_return'):.2f}")
     print(f"metrics: {run_dir / rundir.METRICS}, {run_dir / rundir.EVAL}; TensorBoard: tensorboard --logdir {run_dir}")
     return 0

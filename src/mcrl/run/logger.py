@@ -29,9 +29,10 @@ class RunLogger:
         rundir.append_row(self.metrics_path, METRIC_COLUMNS, row)
         if self.tb is not None:
             for k, v in row.items():
-                if k != "step" and v is not None and isinstance(v, (int, float)) and math.isfinite(v):
-                    group = "eval" if k.startswith("eval_") else "train"
-                    self.tb.add_scalar(f"{group}/{k}", v, row["step"])
+                # eval_* repeat the last evaluation on every row: `log_eval` writes each evaluation once, at its own
+                # step, as eval/<name>, so each quantity has one tag
+                if k != "step" and not k.startswith("eval_") and isinstance(v, (int, float)) and math.isfinite(v):
+                    self.tb.add_scalar(f"train/{k}", v, row["step"])
 
     def log_eval(self, row: dict) -> None:
         rundir.append_row(self.eval_path, EVAL_COLUMNS, row)
