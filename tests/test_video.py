@@ -225,3 +225,22 @@ def test_mp4_without_ffmpeg_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", missing)
     with pytest.raises(MCRLError, match="ffmpeg.*gif"):
         video.write_video([np.zeros((8, 8, 3), np.uint8)], tmp_path / "x.mp4", "mp4")
+
+
+@pytest.mark.parametrize("width", [480, 320])
+@pytest.mark.parametrize("series", [
+    # a FetchReach video's rows: before the fix the rows' adjacent tick labels ("9.22" over "-0.136") touched
+    {"raw KL (nats)": np.linspace(9.22, 10.1, 50), "MC reward (normalised)": np.linspace(-0.213, -0.136, 50),
+     "extrinsic reward": -np.ones(50), "mixed reward, alpha 0.2": np.linspace(-0.84, -0.83, 50)},
+    # tick labels wider than the fixed margin ran off the panel's left edge
+    {"tiny": np.linspace(-0.00209, -0.000129, 50), "huge": np.linspace(-1190.0, -19.7, 50)},
+])
+def test_timeline_texts_keep_apart_and_inside_the_panel(series, width):
+    """Tick labels, row names and axis labels: no two closer than a pixel, none beyond the panel's edges."""
+    tl = video.Timeline(series, (np.arange(50) > 30).astype(float), width)
+    boxes = tl.text_boxes()
+    assert {"step", "success"} | set(series) <= {text for text, _ in boxes}
+    for i, (a, (ax0, ay0, ax1, ay1)) in enumerate(boxes):
+        assert 0 <= ax0 and ax1 <= tl.width and 0 <= ay0 and ay1 <= tl.height, (a, boxes[i][1])
+        for b, (bx0, by0, bx1, by1) in boxes[i + 1:]:
+            assert max(bx0 - ax1, ax0 - bx1, by0 - ay1, ay0 - by1) >= 1, (a, b)

@@ -42,6 +42,8 @@ class Timeline:
 
     One row per series, each on its own y axis scaled to its own range (min/max as ticks),
     then a success band, then the step axis. ``frame(scene, t)`` stacks the scene over it.
+    No two of its texts overlap (`text_boxes`): the left margin widens to the widest tick label, and each row's
+    tick labels stay inside its own band.
     """
 
     def __init__(
@@ -83,9 +85,13 @@ class Timeline:
         from matplotlib.figure import Figure
 
         W, H, T = self.width, self.height, self.T
-        plot_w = max(W - left - value_width, 40)
         fig = Figure(figsize=(W / dpi, H / dpi), dpi=dpi, facecolor="white")
         canvas = FigureCanvasAgg(fig)
+        ranges = [_finite_range(v) for v in self.values]
+        tick_texts = [f"{x:.3g}" for r in ranges for x in r] + (["success"] if self.success is not None else [])
+        # a fixed margin cut long tick labels ("-0.00212") at the panel's edge: make room for the widest
+        left = max(left, int(np.ceil(_widest(canvas, tick_texts, dpi))) + 8)
+        plot_w = max(W - left - value_width, 40)
         steps = np.arange(T)
         axes = []
         y = top
@@ -104,16 +110,20 @@ class Timeline:
                 ax.tick_params(axis="x", labelsize=6)
             if i < len(self.names):
                 v = self.values[i]
-                lo, hi = _finite_range(v)
+                lo, hi = ranges[i]
                 pad = 0.08 * (hi - lo)
                 ax.set_ylim(lo - pad, hi + pad)
                 ax.set_yticks([lo, hi])
-                ax.set_yticklabels([f"{lo:.3g}", f"{hi:.3g}"])
+                # centred on their ticks, a row's bottom label met the next row's top label: keep both inside
+                for label, va in zip(ax.set_yticklabels([f"{lo:.3g}", f"{hi:.3g}"]), ("bottom", "top")):
+                    label.set_va(va)
                 ax.plot(steps, v, color=_ROW_COLOURS[i % len(_ROW_COLOURS)], lw=1.0,
                         drawstyle="steps-mid" if T > 1 else "default",
                         marker="o" if T == 1 else None, ms=2)
-                ax.text(0.005, 0.97, self.names[i], transform=ax.transAxes, va="top", ha="left",
-                        fontsize=6.5, bbox=dict(facecolor="white", edgecolor="none", alpha=0.75, pad=0.5))
+                # a few pixels in from the axis: at its edge the name ran into the top tick label beside it
+                ax.annotate(self.names[i], (0, 1), xycoords="axes fraction", xytext=(5, -2),
+                            textcoords="offset pixels", va="top", ha="left", fontsize=6.5,
+                            bbox=dict(facecolor="white", edgecolor="none", alpha=0.75, pad=0.5))
             else:
                 s = self.success > 0.5
                 ax.set_ylim(0, 1)
@@ -124,6 +134,7 @@ class Timeline:
             y += h
         axes[-1].set_xlabel("step", fontsize=6, labelpad=0)
         canvas.draw()
+        self._text_boxes = _text_boxes(fig, canvas, H)
         panel = np.asarray(canvas.buffer_rgba())[..., :3]
         if panel.shape[:2] != (H, W):  # figure size rounding: crop/pad to exact size
             fixed = np.full((H, W, 3), 255, np.uint8)
@@ -155,6 +166,10 @@ class Timeline:
             self._font = ImageFont.load_default(size=11)
         except TypeError:  # very old Pillow
             self._font = ImageFont.load_default()
+
+    def text_boxes(self) -> list[tuple[str, tuple[float, float, float, float]]]:
+        """Each text of the static panel and its box (x0, y0, x1, y1) in panel pixels, y downwards."""
+        return list(self._text_boxes)
 
     # -- per-frame part ---------------------------------------------------------------------
     def cursor_x(self, t: int) -> int:
@@ -209,6 +224,30 @@ class Timeline:
         out[: scene.shape[0]] = scene[..., :3]
         out[scene.shape[0]:] = panel
         return out
+
+
+def _widest(canvas, texts: list[str], dpi: int, size: float = 6) -> float:
+    """The width in pixels of the widest of `texts` at font size `size` (the tick labels')."""
+    from matplotlib.font_manager import FontProperties
+
+    renderer, font = canvas.get_renderer(), FontProperties(size=size)
+    return max((renderer.get_text_width_height_descent(t, font, ismath=False)[0] for t in texts), default=0.0)
+
+
+def _text_boxes(fig, canvas, H: int) -> list[tuple[str, tuple[float, float, float, float]]]:
+    """Every visible text of the drawn figure (tick labels, axis labels, row names) and its box (x0, y0, x1, y1)
+    in panel pixels, y downwards."""
+    renderer, out = canvas.get_renderer(), []
+    for ax in fig.axes:
+        ticks = [t.label1 for axis in (ax.xaxis, ax.yaxis) for t in axis.get_major_ticks()
+                 if min(axis.get_view_interval()) <= t.get_loc() <= max(axis.get_view_interval())]  # those drawn
+        for t in [*ticks, ax.xaxis.label, ax.yaxis.label, *ax.texts]:
+            if t.get_visible() and t.get_text():
+                b = t.get_window_extent(renderer)
+                if t.get_bbox_patch() is not None:  # a row name's white box covers more than its letters
+                    b = type(b).union([b, t.get_bbox_patch().get_window_extent(renderer)])
+                out.append((t.get_text(), (b.x0, H - b.y1, b.x1, H - b.y0)))
+    return out
 
 
 def _finite_range(v: np.ndarray) -> tuple[float, float]:
