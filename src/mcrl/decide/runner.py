@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,6 +27,7 @@ from mcrl.decide.plan import Plan, load_plan
 from mcrl.errors import MCRLError
 from mcrl.run import lock as locks
 from mcrl.run import rundir
+from mcrl.sweep.provenance import code_version, machine
 
 LOOKS = "looks.jsonl"
 LOCK = ".decide.lock"
@@ -112,23 +112,9 @@ def finals_so_far(st: State) -> tuple[dict[str, list[float]], list[str]]:
     return finals, missing
 
 
-def _machine() -> str:
-    try:
-        info = Path("/proc/cpuinfo").read_text().split("\n")
-        get = lambda key: next((ln.split(":", 1)[1].strip() for ln in info if ln.split(":")[0].strip() == key), "?")
-        return f"{get('model name')}, family {get('cpu family')} model {get('model')}, {os.cpu_count()} cores"
-    except OSError:
-        return "unknown"
-
-
 def code_commit() -> str | None:
-    """The git commit of the mcrl code running (an editable install in a clone), None when it is not a clone."""
-    here = Path(__file__).resolve().parent
-    try:
-        out = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
+    """The git commit of the mcrl code running (a git checkout of itself), None otherwise."""
+    return code_version().get("commit")
 
 
 def check_commit(plan: Plan, any_commit: bool = False) -> str | None:
@@ -169,7 +155,7 @@ def look(plan: Plan, commit: str | None = None) -> dict:
                         f"{plan.path}` to finish them")
     record = take_look(plan, finals, st.looks)
     record.update(seeds={a: st.seeds_of(a) for a in plan.arms}, time=time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                  machine=_machine(), mcrl_commit=commit if commit is not None else code_commit())
+                  machine=machine(), mcrl_commit=commit if commit is not None else code_commit())
     append_look(plan, record)
     return record
 
