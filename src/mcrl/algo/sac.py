@@ -16,6 +16,8 @@ call (`mcrl.algo.diagnostics`) and reads only at log intervals.
 `update(state, batch, hyper)` with a `Hyper` takes intrinsic_alpha, gamma, tau and the learning rates as data
 instead of compile-time constants: `jax.vmap` of it trains a grid of runs as one computation
 (`mcrl.run.group`), compiled once for every alpha. Without `hyper` they are the config's constants.
+`update(state, batch, hyper, mix)` takes the reward mix's weights as data too (`Mix`): the training loop passes the
+weight its schedule gives each step (`mcrl.algo.schedule`), so a changing alpha compiles nothing.
 """
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+import numpy as np
+
 from mcrl.algo import intrinsic as intrinsic_rewards
 from mcrl.algo import normaliser
 from mcrl.algo.intrinsic import IntrinsicReward
@@ -33,7 +37,7 @@ from mcrl.algo.networks import GaussianHead, TwinCritic
 from mcrl.config import Config
 from mcrl.replay import Batch
 
-__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "SQUASH_CORRECTIONS",
+__all__ = ["Agent", "Batch", "Hyper", "IntrinsicModels", "IntrinsicStep", "Learned", "Mix", "SQUASH_CORRECTIONS",
            "TrainState", "saturation", "squash_log_det", "tanh_gaussian_sample"]
 
 INTRINSIC_KEY = 0x1A7  # folded into the step's key for the intrinsic reward's own randomness
@@ -80,6 +84,27 @@ class Hyper(NamedTuple):
     @classmethod
     def of(cls, cfg: Config) -> "Hyper":
         return cls(cfg.intrinsic_alpha, cfg.gamma, cfg.tau, cfg.learning_rate, cfg.intrinsic_lr)
+
+
+class Mix(NamedTuple):
+    """The reward mix's weights as data of the step: `ext` = 1 - alpha on the extrinsic reward, `intrinsic` = alpha
+    on the intrinsic one (scalars for a run, (N,) for a vmapped group). 1 - alpha is computed on the host, each
+    learner the way its step computed it when alpha was fixed, so that `constant` keeps every number bit for bit."""
+
+    ext: Any
+    intrinsic: Any
+
+    @classmethod
+    def of(cls, alpha: float) -> "Mix":
+        """A run's: 1 - alpha in float64, then float32, as the constant folding of `(1.0 - alpha) * r` gave it."""
+        return cls(np.float32(1.0 - alpha), np.float32(alpha))
+
+    @classmethod
+    def of_float32(cls, alphas) -> "Mix":
+        """A vmapped group's: 1 - alpha in float32, as its step computed it from the float32 alphas in `Hyper`
+        (it differs from `of` in the last bit for some alphas, e.g. 0.058)."""
+        a = np.asarray(alphas, np.float32)
+        return cls(np.float32(1.0) - a, a)
 
 
 class IntrinsicStep(NamedTuple):
@@ -219,9 +244,11 @@ class Agent:
         upd, opt = self._opt(lr).update(grads, learned.opt, learned.params)
         return Learned(optax.apply_updates(learned.params, upd), opt)
 
-    def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None) -> tuple[TrainState, dict]:
+    def update(self, state: TrainState, batch: Batch, hyper: Hyper | None = None,
+               mix: Mix | None = None) -> tuple[TrainState, dict]:
         """One gradient step: the new state, and the step's metrics by name (`mcrl.algo.metrics`: those of the
-        run's intrinsic reward, the normalised reward and the normaliser's bounds only with intrinsic models)."""
+        run's intrinsic reward, the normalised reward and the normaliser's bounds only with intrinsic models).
+        The reward mix's weights: `mix` if given, else `hyper`'s intrinsic_alpha, else the config's."""
         cfg = self.cfg
         h = Hyper.of(cfg) if hyper is None else hyper
         key, k_pi, k_next = jax.random.split(state.key, 3)
@@ -232,7 +259,9 @@ class Agent:
         if cfg.use_intrinsic_models:
             step = self.intrinsic_reward(state, batch)
             m.update(step.metrics)
-            if hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
+            if mix is not None:  # the weights as data: exactly r_ext where alpha is 0 (a schedule's end, SAC runs)
+                reward = jnp.where(mix.intrinsic > 0, mix.ext * batch.reward + mix.intrinsic * step.reward, reward)
+            elif hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
                 reward = jnp.where(h.intrinsic_alpha > 0,
                                    (1.0 - h.intrinsic_alpha) * batch.reward + h.intrinsic_alpha * step.reward, reward)
             elif cfg.intrinsic_alpha > 0:

@@ -4,7 +4,8 @@ Runs whose configs agree in everything but `PER_RUN_KEYS` have learner states of
 stacks them along a leading run axis. The loop is the single run's (`mcrl.run.trainer.run_loop`): every run
 acts, steps its own environment, stores its transition in its own replay buffer and samples its own batch (host
 side, with its own RNG, in the same order as alone), then one compiled call updates all of them. The per-run
-scalars (intrinsic_alpha, gamma, tau, learning rates) are data (`sac.Hyper`), so a grid over alpha compiles once.
+scalars (intrinsic_alpha, gamma, tau, learning rates) are data (`sac.Hyper`), so a grid over alpha compiles once;
+so is each run's intrinsic weight of the step (`sac.Mix`).
 
 SAC runs (intrinsic_alpha = 0, no intrinsic models) in a group with SAC-MC runs carry the group's intrinsic
 models (MC's, or those of the group's `intrinsic`, which all its runs share) as ballast so that the shapes agree:
@@ -26,7 +27,7 @@ import numpy as np
 from mcrl.algo import diagnostics
 from mcrl.algo.diagnostics import Diagnostics
 from mcrl.algo.metrics import INTRINSIC_METRICS
-from mcrl.algo.sac import Agent, Batch, Hyper, TrainState
+from mcrl.algo.sac import Agent, Batch, Hyper, Mix, TrainState
 from mcrl.config import Config
 from mcrl.errors import MCRLError
 from mcrl.run.learner import act_key, train_step
@@ -78,11 +79,13 @@ class GroupLearner:
         self.diag: Diagnostics = stack(diags)
         self.hyper = Hyper(*(jnp.asarray([getattr(Hyper.of(m.cfg), f) for m in members], jnp.float32)
                              for f in Hyper._fields))
-        vstep = jax.vmap(lambda s, d, b, h: train_step(agent, s, d, b, h))
+        vstep = jax.vmap(lambda s, d, b, h, w: train_step(agent, s, d, b, h, w))
         self._step = jax.jit(vstep, donate_argnums=(0, 1))
+        self._alphas, self._mix = None, None  # the weights last put on the device
+        self._default_alphas = [m.cfg.intrinsic_alpha for m in members]
 
-        def masked(state, diag, batch, hyper, active):  # runs whose buffer cannot be sampled yet keep theirs
-            new = vstep(state, diag, batch, hyper)
+        def masked(state, diag, batch, hyper, mix, active):  # runs whose buffer cannot be sampled yet keep theirs
+            new = vstep(state, diag, batch, hyper, mix)
             return jax.tree.map(lambda n, o: jnp.where(active.reshape((-1,) + (1,) * (n.ndim - 1)), n, o),
                                 new, (state, diag))
 
@@ -100,17 +103,22 @@ class GroupLearner:
     def act(self, obs: np.ndarray, t: int) -> np.ndarray:
         return np.asarray(self._act(self.state.pi.params, obs, t))
 
-    def update(self, batches: list[Batch | None]) -> None:
+    def update(self, batches: list[Batch | None], alphas: list[float] | None = None) -> None:
+        """One vmapped gradient step; run i with intrinsic weight `alphas[i]` (None: the configs' intrinsic_alpha)."""
         active = np.array([b is not None for b in batches])
         if not active.any():
             return
+        alphas = list(alphas or self._default_alphas)
+        if alphas != self._alphas:
+            self._alphas, self._mix = alphas, jax.device_put(Mix.of_float32(alphas))
         ref = next(b for b in batches if b is not None)
         zeros = Batch(*(np.zeros_like(x) for x in ref))  # for the runs the mask keeps out
         batch = Batch(*(np.stack(xs) for xs in zip(*(b if b is not None else zeros for b in batches))))
         if active.all():
-            self.state, self.diag = self._step(self.state, self.diag, batch, self.hyper)
+            self.state, self.diag = self._step(self.state, self.diag, batch, self.hyper, self._mix)
         else:
-            self.state, self.diag = self._masked(self.state, self.diag, batch, self.hyper, jnp.asarray(active))
+            self.state, self.diag = self._masked(self.state, self.diag, batch, self.hyper, self._mix,
+                                                 jnp.asarray(active))
 
     def read_metrics(self) -> list[dict[str, float]]:
         sums, counts, bounds = jax.device_get((self.diag.metric_sums, self.diag.metric_count, self.diag.bounds))
