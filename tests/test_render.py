@@ -54,6 +54,22 @@ def test_timeline_values_equal_the_mc_modules_kl(run_dir):
         assert drawn["extrinsic reward"] == ep["rewards"][t]
 
 
+def test_timeline_mixes_the_rewards_at_the_weight_in_force(run_dir):
+    """The last row is the reward the agent learns from, (1 - alpha) r_ext + alpha r_int, at the weight its schedule
+    gives (the training loop passes it), named with that weight; without one given, the config's."""
+    cfg, agent, state = load_policy(run_dir)
+    env = make_render_env(cfg.env_id)
+    try:
+        ep = record_episode(cfg, agent, state, env, seed=123, alpha=0.13)
+        plain = record_episode(cfg, agent, state, env, seed=123)
+    finally:
+        env.close()
+    rows = ep["series"]
+    assert list(rows)[-1] == "mixed reward, alpha 0.13" and list(plain["series"])[-1] == "mixed reward, alpha 0.2"
+    np.testing.assert_allclose(rows["mixed reward, alpha 0.13"],
+                               0.87 * ep["rewards"] + 0.13 * rows["MC reward (normalised)"], rtol=1e-12)
+
+
 def test_render_errors(run_dir, tmp_path, capsys):
     assert main(["render", str(tmp_path)]) == 2
     assert "not a run directory" in capsys.readouterr().err

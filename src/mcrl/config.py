@@ -47,7 +47,11 @@ class Config:
     # 204 of 256, as stable-baselines3's HerReplayBuffer (the thesis' code's buffer)
     # --- the intrinsic reward (docs/intrinsic.md); renamed keys were mc_* before (`RENAMED`) ---
     intrinsic: str = "mc"  # the reward intrinsic_alpha mixes in: a name of mcrl.algo.intrinsic's registry
-    intrinsic_alpha: float = 0.0  # its weight: (1 - a) r_ext + a r_int
+    intrinsic_alpha: float = 0.0  # its weight: (1 - a) r_ext + a r_int; with a schedule, the weight at the start
+    intrinsic_schedule: str = "constant"  # how the weight moves in training: constant | linear | success
+    intrinsic_alpha_end: float = 0.0  # linear: the weight it ends at
+    intrinsic_schedule_steps: int | None = None  # linear: env steps to reach intrinsic_alpha_end; None = total_steps
+    intrinsic_success_window: int = 100  # success: training episodes of the success average s, weight a (1 - s)
     intrinsic_models: bool | None = None  # None = train the reward's models iff intrinsic_alpha > 0
     intrinsic_lr: float = 3e-4
     intrinsic_hidden_sizes: tuple[int, ...] = (256, 256, 256, 256, 256)
@@ -72,9 +76,14 @@ class Config:
 
     # ---- derived ----
     @property
+    def intrinsic_alpha_max(self) -> float:
+        """The largest weight the schedule can give (linear may rise from intrinsic_alpha to intrinsic_alpha_end)."""
+        return max(self.intrinsic_alpha, self.intrinsic_alpha_end if self.intrinsic_schedule == "linear" else 0.0)
+
+    @property
     def use_intrinsic_models(self) -> bool:
         """Whether this run trains the models of its intrinsic reward (SAC runs do not, unless asked)."""
-        return self.intrinsic_alpha > 0 if self.intrinsic_models is None else bool(self.intrinsic_models)
+        return self.intrinsic_alpha_max > 0 if self.intrinsic_models is None else bool(self.intrinsic_models)
 
     @property
     def intrinsic_values_per_step(self) -> int:
@@ -132,6 +141,9 @@ class Config:
         return cls.from_dict({**TRAINED_BEFORE_KEY, **d})
 
 
+# how the intrinsic weight moves during training (mcrl.algo.schedule; docs/intrinsic.md#schedules)
+SCHEDULES = ("constant", "linear", "success")
+
 # the value a key had in effect before it existed, for config.json files written then (`Config.from_run_json`)
 TRAINED_BEFORE_KEY: dict[str, Any] = {"squash_correction": "exact", "her_rounding": "nearest"}
 
@@ -170,6 +182,12 @@ KEY_NOTES: dict[str, str] = {
     "intrinsic": "the intrinsic reward intrinsic_alpha mixes in: mc (thesis) | rnd | icm | disagreement "
                  "(docs/intrinsic.md), or any other registered in mcrl.algo.intrinsic",
     "intrinsic_alpha": "weight of the intrinsic reward: (1 - a) r_ext + a r_int; 0 = plain SAC (was mc_alpha)",
+    "intrinsic_schedule": "how intrinsic_alpha moves in training: constant | linear (to intrinsic_alpha_end over "
+                          "intrinsic_schedule_steps) | success (alpha (1 - s), s the training success average)",
+    "intrinsic_alpha_end": "linear schedule: the weight it ends at, in [0, 1] (default 0: hand over to the task)",
+    "intrinsic_schedule_steps": "linear schedule: env steps from intrinsic_alpha to intrinsic_alpha_end; null = "
+                                "total_steps",
+    "intrinsic_success_window": "success schedule: training episodes the success average s covers",
     "intrinsic_models": "train the intrinsic reward's models even at intrinsic_alpha=0 (null: iff intrinsic_alpha "
                         "> 0; was mc_models)",
     "intrinsic_lr": "Adam learning rate of the intrinsic reward's models (was mc_lr)",
@@ -329,8 +347,20 @@ def validate(cfg: Config) -> None:
     if cfg.matmul_precision not in ("float32", "bfloat16"):
         bad(f"matmul_precision={cfg.matmul_precision!r}: choose float32 (the default) or bfloat16 "
             "(bfloat16 matmul inputs, float32 accumulation and parameters)")
-    if cfg.intrinsic_alpha > 0 and cfg.intrinsic_models is False:
-        bad(f"intrinsic_alpha={cfg.intrinsic_alpha} needs the intrinsic reward's models, but intrinsic_models=false: "
+    if cfg.intrinsic_schedule not in SCHEDULES:
+        bad(f"intrinsic_schedule={cfg.intrinsic_schedule!r}: choose constant (a fixed weight), linear (intrinsic_alpha "
+            "to intrinsic_alpha_end) or success (intrinsic_alpha x (1 - training success)); docs/intrinsic.md")
+    if not 0.0 <= cfg.intrinsic_alpha_end <= 1.0:
+        bad(f"intrinsic_alpha_end={cfg.intrinsic_alpha_end} is outside [0, 1]: pick the linear schedule's end weight "
+            "between 0 (the task's reward only) and 1")
+    if cfg.intrinsic_success_window < 1:
+        bad(f"intrinsic_success_window={cfg.intrinsic_success_window} must be at least 1: the success schedule "
+            "averages that many training episodes, e.g. 100")
+    if cfg.intrinsic_schedule_steps is not None and cfg.intrinsic_schedule_steps < 1:
+        bad(f"intrinsic_schedule_steps={cfg.intrinsic_schedule_steps} must be at least 1, or null (total_steps)")
+    if cfg.intrinsic_alpha_max > 0 and cfg.intrinsic_models is False:
+        key = "intrinsic_alpha" if cfg.intrinsic_alpha > 0 else "intrinsic_alpha_end"  # linear may rise from 0
+        bad(f"{key}={getattr(cfg, key)} needs the intrinsic reward's models, but intrinsic_models=false: "
             "drop --set intrinsic_models=false (or set intrinsic_alpha=0 for plain SAC)")
     for name in ("total_steps", "batch_size", "buffer_size", "eval_episodes", "log_every",
                  "checkpoint_every", "keep_checkpoints"):

@@ -99,6 +99,7 @@ def panel_grid(n_panels: int, ncols: int = 2, panel_size: tuple[float, float] = 
 # (title, ylabel, [(column, label)], source, log y) for each panel a run can have
 _RUN_PANELS: list[tuple[str, str, list[tuple[str, str]], str, bool]] = [
     ("success rate", "success rate", [("success_rate", "eval"), ("train_success_rate", "train")], "both", False),
+    ("intrinsic weight in force", "alpha", [("intrinsic_alpha", "alpha")], "metrics", False),  # a moving schedule's
     ("mean episode return", "return", [("mean_return", "eval"), ("train_return", "train")], "both", False),
     ("actor loss", "loss", [("actor_loss", "actor")], "metrics", False),
     ("critic loss", "loss", [("critic_loss", "critic")], "metrics", False),
@@ -114,9 +115,9 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
     """Plot the learning curves of one run into a multi-panel PNG; returns its path.
 
     Panels: eval success rate and eval mean return (from eval.csv; the training-episode values
-    from metrics.csv dashed beside them), actor and critic loss, entropy coefficient, MC model
-    losses, mean MC reward and raw KL; a panel is left out when its columns are empty (e.g.
-    the MC panels of a plain SAC run). Default output: ``RUN_DIR/curves.png``.
+    from metrics.csv dashed beside them), the intrinsic weight if the run's schedule moves it, actor and
+    critic loss, entropy coefficient, MC model losses, mean MC reward and raw KL; a panel is left out when its
+    columns are empty (e.g. the MC panels of a plain SAC run). Default output: ``RUN_DIR/curves.png``.
     """
     run = Path(run_dir)
     if not run.is_dir():
@@ -126,8 +127,12 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
         raise MCRLError(f"{run} has no eval.csv or metrics.csv rows yet: wait for the run's first log "
                         "interval, or pass a run directory written by `mcrl train`")
 
+    cfg = read_json(run / CONFIG)  # {} when unreadable: a plot must not fail on it
+    moving = cfg.get("intrinsic_schedule", "constant") != "constant"  # a constant weight is a flat line: left out
     panels = []
     for title, ylabel, cols, source, logy in _RUN_PANELS:
+        if cols[0][0] == "intrinsic_alpha" and not moving:
+            continue
         series = []  # (steps, values, label, linestyle)
         for col, label in cols:
             # eval.csv names the eval columns plainly; metrics.csv prefixes them (eval_*).
@@ -139,7 +144,6 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
             panels.append((title, ylabel, series, logy))
 
     fig, axes = panel_grid(len(panels))
-    cfg = read_json(run / CONFIG)  # {} when unreadable: a plot must not fail on it
     fig.suptitle(f"{run.name}  ({cfg.get('preset', '?')}, mc_alpha={cfg.get('mc_alpha', '?')}, "
                  f"seed={cfg.get('seed', '?')}){'' if is_done(run) else '  [unfinished]'}",
                  fontsize=11)

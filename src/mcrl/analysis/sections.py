@@ -88,14 +88,23 @@ def _colors(exp: Experiment) -> dict[str, str]:
     return {g.key: COLORS[i % len(COLORS)] for i, g in enumerate(exp.configs)}
 
 
+def _curve_source(r: Run, col: str) -> dict[str, np.ndarray]:
+    """The columns a curve of `col` comes from: metrics.csv for the intrinsic weight, eval.csv for the rest."""
+    return r.metrics if col == "intrinsic_alpha" else r.eval if r.has_eval else {}
+
+
 def _learning_curves(exp: Experiment) -> list[Block]:
-    fig, (ax_s, ax_r) = panel_grid(2)
+    # the intrinsic weight beside success where a run's schedule moves it (metrics.csv's intrinsic_alpha)
+    moving = any(r.config.get("intrinsic_schedule", "constant") != "constant" for r in exp.runs)
+    panels = [("success_rate", "eval success rate", "success rate"), ("mean_return", "eval mean return", "return")]
+    if moving:
+        panels.insert(1, ("intrinsic_alpha", "intrinsic weight alpha in force", "alpha"))
+    fig, axes = panel_grid(len(panels), ncols=len(panels))
     colors = _colors(exp)
-    for ax, col, title, ylabel in ((ax_s, "success_rate", "eval success rate", "success rate"),
-                                   (ax_r, "mean_return", "eval mean return", "return")):
+    for ax, (col, title, ylabel) in zip(axes, panels):
         for peers, style in ((False, "-"), (True, "--")):  # reference arms dashed
-            series = [(g.key, r.eval) for g in exp.configs if bool(g.peer) == peers
-                      for r in g.runs if r.has_eval and has_data(r.eval, col)]
+            series = [(g.key, _curve_source(r, col)) for g in exp.configs if bool(g.peer) == peers
+                      for r in g.runs if has_data(_curve_source(r, col), col)]
             if series or not peers:
                 grid, by_cfg = _curves_by_config(series, col)
                 plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED,
@@ -107,6 +116,7 @@ def _learning_curves(exp: Experiment) -> list[Block]:
          "Deterministic evaluation during training: mean over seeds, shaded 95% bootstrap band over seeds "
          f"where at least {MIN_SEEDS_FOR_VERDICT} seeds have the point; where fewer do, thin lines are the seeds' own curves."
          + (" Dashed: reference arms (not trained by mcrl)." if any(g.peer for g in exp.configs) else "")
+         + (" Middle: the intrinsic weight in force at each log row, as each run's schedule set it." if moving else "")
          + (f" {partial} unfinished run(s) are included up to their last evaluation." if partial else "")),
     ]
 

@@ -5,7 +5,7 @@ stacks them along a leading run axis. The loop is the single run's (`mcrl.run.tr
 acts, steps its own environment, stores its transition in its own replay buffer and samples its own batch (host
 side, with its own RNG, in the same order as alone), then one compiled call updates all of them. The per-run
 scalars (intrinsic_alpha, gamma, tau, learning rates) are data (`sac.Hyper`), so a grid over alpha compiles once;
-so is each run's intrinsic weight of the step (`sac.Mix`).
+so is each run's intrinsic weight of the step (`sac.Mix`), which its own schedule gives (`mcrl.algo.schedule`).
 
 SAC runs (intrinsic_alpha = 0, no intrinsic models) in a group with SAC-MC runs carry the group's intrinsic
 models (MC's, or those of the group's `intrinsic`, which all its runs share) as ballast so that the shapes agree:
@@ -36,7 +36,8 @@ from mcrl.run.trainer import VideoStep, train_runs
 
 # Config keys that may differ inside a group (per-run data or host-side only); all others must agree.
 PER_RUN_KEYS = ("seed", "intrinsic_alpha", "intrinsic_models", "learning_rate", "intrinsic_lr", "gamma", "tau",
-                "preset", "out_dir")
+                "preset", "out_dir", "intrinsic_schedule", "intrinsic_alpha_end", "intrinsic_schedule_steps",
+                "intrinsic_success_window")
 
 
 def group_key(cfg: Config) -> str:
@@ -143,7 +144,6 @@ def train_group(cfgs: list[Config], run_dirs: list[Path | str], env_workers: int
     if not cfgs or len(cfgs) != len(run_dirs):
         raise MCRLError("a group needs one run directory per config")
     if len({group_key(c) for c in cfgs}) != 1:
-        raise MCRLError("these runs differ in more than seed, intrinsic_alpha, intrinsic_models, learning rates, "
-                        "gamma and tau: "
-                        "train them in separate groups (mcrl.run.group.plan_groups)")
+        raise MCRLError("these runs differ in more than seed, intrinsic_alpha and its schedule, intrinsic_models, "
+                        "learning rates, gamma and tau: train them in separate groups (mcrl.run.group.plan_groups)")
     return train_runs(list(cfgs), [Path(d) for d in run_dirs], True, GroupLearner, env_workers, progress, video)

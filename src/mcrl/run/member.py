@@ -5,7 +5,8 @@ counters, and the steps the loop calls for it. The loop holds the learner's stat
 Reproducibility and resume: every environment reset is seeded from (seed, stream, episode), warm-up actions and
 replay batches come from the run's own host RNG, and a checkpoint holds all of it (`save` / `open_member`): the
 learner's state, the diagnostics of the log interval in progress, the replay buffer, the host RNG and
-`Progress`, written at episode ends after that step's evaluation and log row.
+`Progress` (with the intrinsic weight's schedule state), written at episode ends after that step's evaluation and
+log row.
 
 One writer per run: `open_member` locks the run directory (`mcrl.run.lock`) before it writes anything, and
 `Member.close` lets go.
@@ -20,9 +21,10 @@ import numpy as np
 
 from mcrl.algo import diagnostics, normaliser
 from mcrl.algo.diagnostics import Diagnostics
+from mcrl.algo.schedule import Schedule
 from mcrl.algo.sac import Agent, TrainState
 from mcrl.config import Config
-from mcrl.envs import episode_seed
+from mcrl.envs import episode_seed, family_of
 from mcrl.errors import MCRLError
 from mcrl.replay import Batch, ReplayBuffer
 from mcrl.run import checkpoint, rundir
@@ -49,6 +51,7 @@ class Progress:
     eval_round: int = 0
     interval: dict = field(default_factory=_new_interval)  # since the last log row
     last_eval: dict = field(default_factory=lambda: {"success_rate": None, "mean_return": None})
+    success_window: list = field(default_factory=list)  # the success flags the intrinsic weight's schedule averages
 
 
 class Member:
@@ -66,6 +69,8 @@ class Member:
         self.ep_return = 0.0
         self.ep_start_goal: np.ndarray | None = None  # the achieved goal at the episode's start (goal envs)
         self.last_ckpt, self.ckpt_due = progress.step, False
+        self.schedule = Schedule.of(cfg)
+        self.alpha = cfg.intrinsic_alpha  # the intrinsic weight in force: of the last step `intrinsic_weight` gave
 
     # ------------------------------------------------------------------ acting and storing (every step)
     def episode_seed(self) -> int:
@@ -86,6 +91,11 @@ class Member:
         self.progress.step += 1
         self.obs = next_obs
 
+    def intrinsic_weight(self, step: int) -> float:
+        """The intrinsic weight of env step `step`'s gradient step, as the schedule gives it (host side, pure)."""
+        self.alpha = self.schedule.value(step, self.progress.success_window)
+        return self.alpha
+
     def sample(self) -> Batch | None:
         """A replay batch, or None while the buffer cannot be sampled (then the RNG is not advanced)."""
         return self.buffer.sample(self.cfg.batch_size, self.rng) if self.buffer.can_sample() else None
@@ -96,6 +106,7 @@ class Member:
         p.interval["returns"].append(self.ep_return)
         if success is not None:
             p.interval["successes"].append(success)
+        p.success_window = list(self.schedule.observe(p.success_window, success))
         if self.ep_start_goal is not None:  # did the episode move what the goal measures (Fetch: the object)?
             moved = float(np.linalg.norm(self._achieved_goal() - self.ep_start_goal) > GOAL_MOVED)
             p.interval.setdefault("moved", []).append(moved)  # a checkpoint older than this key has none
@@ -124,7 +135,7 @@ class Member:
                "train_return": mean(p.interval["returns"]), "train_success_rate": mean(p.interval["successes"]),
                "train_goal_moved": mean(p.interval.get("moved", [])),
                "eval_success_rate": p.last_eval["success_rate"], "eval_mean_return": p.last_eval["mean_return"],
-               **metrics}
+               "intrinsic_alpha": self.alpha, **metrics}
         self.log.log_metrics(row)
         p.interval = _new_interval()
         return row
@@ -133,7 +144,8 @@ class Member:
         """A checkpoint of everything the run needs to go on exactly."""
         p, cfg = self.progress, self.cfg
         meta = {"episode": p.episode, "eval_round": p.eval_round, "host_rng": self.rng.bit_generator.state,
-                "interval": p.interval, "last_eval": p.last_eval, "config": cfg.to_dict()}
+                "interval": p.interval, "last_eval": p.last_eval, "success_window": p.success_window,
+                "config": cfg.to_dict()}
         extra = {"normaliser": normaliser.pack(state.norm)} if state.norm is not None else None
         arrays = {**checkpoint.flatten(state._replace(norm=None)), **checkpoint.flatten(diag)}
         checkpoint.save(self.run_dir, p.step, arrays, meta, self.buffer.state_arrays() if cfg.save_buffer else None,
@@ -164,6 +176,10 @@ def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[
     `resume` (new if it has none), its directory locked for this process. Writes its config.json and removes a stale
     `done`."""
     env, _, agent, buffer = build(cfg)  # validates env and spaces before anything is written
+    if cfg.intrinsic_schedule == "success" and family_of(cfg.env_id) is None:
+        env.close()
+        raise MCRLError(f"intrinsic_schedule=success averages the training episodes' success, and mcrl knows no "
+                        f"success flag of {cfg.env_id} (mcrl.envs.FAMILIES): choose constant or linear")
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
     lock = None
     try:
@@ -189,7 +205,8 @@ def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[
             buffer.load_arrays(arrays)
             buffer.end_episode()  # the final checkpoint can be mid-episode; the env restarts with a new one
             rng.bit_generator.state = meta["host_rng"]
-            progress = Progress(meta["step"], meta["episode"], meta["eval_round"], meta["interval"], meta["last_eval"])
+            progress = Progress(meta["step"], meta["episode"], meta["eval_round"], meta["interval"], meta["last_eval"],
+                                meta.get("success_window", []))  # none before issue 67: every run was constant
         rundir.write_json_atomic(run_dir / rundir.CONFIG, cfg.to_dict())
         (run_dir / rundir.DONE).unlink(missing_ok=True)
         if progress.step < cfg.total_steps:  # killed after its final evaluation and checkpoint: that evaluation stands

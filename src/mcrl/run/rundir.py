@@ -49,9 +49,11 @@ RUNS = "runs"              # EXP/runs/<name>/: its run directories
 PROVENANCE = "provenance.json"  # EXP/provenance.json: who ran the experiment, how (mcrl.sweep.provenance)
 SMALL_FILES = (CONFIG, METRICS, EVAL, FINAL_EVAL, PEER, DONE)  # what an experiment commits of a finished run
 
-# metrics.csv: the loop's columns around the gradient step's metrics (mcrl.algo.metrics)
+# metrics.csv: the loop's columns around the gradient step's metrics (mcrl.algo.metrics); intrinsic_alpha is the
+# weight in force, as the run's schedule gives it (mcrl.algo.schedule; empty in runs before issue 67)
 METRIC_COLUMNS = ("step", "time_s", "steps_per_s", "episodes", "train_return", "train_success_rate",
-                  "train_goal_moved", "eval_success_rate", "eval_mean_return", *UPDATE_METRICS, *BOUNDS)
+                  "train_goal_moved", "eval_success_rate", "eval_mean_return", "intrinsic_alpha", *UPDATE_METRICS,
+                  *BOUNDS)
 EVAL_COLUMNS = ("step", "success_rate", "mean_return", "episodes")
 TIMING_COLUMNS = ("time_s", "steps_per_s")  # wall-clock: the only columns that differ between identical runs
 LEARNING_COLUMNS = tuple(c for c in METRIC_COLUMNS if c not in TIMING_COLUMNS)

@@ -36,7 +36,7 @@ from mcrl.run.learner import Learner
 from mcrl.run.lock import check_free
 from mcrl.run.member import Member, open_member
 
-VideoStep = Callable  # (cfg, agent, state, run_dir, step, logger) -> path of the video, e.g. record_training_video
+VideoStep = Callable  # (cfg, agent, state, run_dir, step, logger, alpha=) -> the video's path: record_training_video
 
 
 def run_loop(members: list[Member], learner, pool: EnvPool, video: VideoStep | None = None, bar=None) -> None:
@@ -57,8 +57,9 @@ def run_loop(members: list[Member], learner, pool: EnvPool, video: VideoStep | N
         step += 1
         for i, m in enumerate(members):
             m.store(actions[i], res.next_obs[i], res.reward[i], bool(res.terminated[i]), bool(res.truncated[i]))
+        alphas = [m.intrinsic_weight(step) for m in members]  # every step: the log row shows the one in force
         if step > cfg.learning_starts:
-            learner.update([m.sample() for m in members])
+            learner.update([m.sample() for m in members], alphas)
         for i, m in enumerate(members):
             if res.terminated[i] or res.truncated[i]:
                 m.end_episode(res.success[i])
@@ -70,7 +71,7 @@ def run_loop(members: list[Member], learner, pool: EnvPool, video: VideoStep | N
                 state, _ = learner.state_of(i)
                 m.evaluate(state, final)
                 if video is not None and cfg.video_every and step % cfg.video_every == 0:
-                    video(m.cfg, m.agent, state, m.run_dir, step, m.log)
+                    video(m.cfg, m.agent, state, m.run_dir, step, m.log, alpha=m.alpha)
         if final or step % cfg.log_every == 0:
             elapsed = time.perf_counter() - t_start
             rows = [m.log_row(mx, elapsed, step - steps_at_start) for m, mx in zip(members, learner.read_metrics())]
