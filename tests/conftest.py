@@ -49,8 +49,10 @@ def pytest_unconfigure(config):
 # The longest files first (`make test` runs a file per worker, in collection order, with --no-loadscope-reorder:
 # pytest-xdist otherwise hands out the files with the most tests first, which sent the one-test
 # test_learning.py last and left the other worker idle for its 5 minutes). Ordered by their wall time in a
-# 2-worker run on 2 cores (AMD EPYC Zen 4, 2026-11-29); files not named keep their alphabetical order after these.
-LONGEST_FIRST = ["test_intrinsic.py", "test_vmap.py", "test_learning.py", "test_sweep.py", "test_chaos.py",
+# 2-worker run on 2 cores (AMD EPYC Zen 4, 2026-11-29; test_schedule.py, added later, by its ~7 min alone on 2 busy
+# cores); files not named keep their alphabetical order after these.
+LONGEST_FIRST = ["test_intrinsic.py", "test_vmap.py", "test_learning.py", "test_schedule.py", "test_sweep.py",
+                 "test_chaos.py",
                  "test_precision.py", "test_install.py", "test_decide.py", "test_report.py", "test_faults.py",
                  "test_gpu_script.py", "test_mc.py", "test_resume.py", "test_sac.py", "test_migrate.py",
                  "test_render.py"]
