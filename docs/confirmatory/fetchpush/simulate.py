@@ -134,6 +134,13 @@ def simulate(plan: Plan, models: dict, experiments: int, rng) -> dict:
     n_arm = np.zeros((E, len(arms)), dtype=int)
     infos = [information(b * (k + 1), b * (k + 1)) for k in range(K)]
     levels = np.array([c.level for c in plan.claims])
+
+    def level_in_force(c, rep: np.ndarray) -> np.ndarray:
+        """Each experiment's level for claim `c` given which claims are reproduced (`rep`, experiments x claims):
+        `mcrl.decide.look._level_in_force`, vectorised."""
+        if plan.multiplicity != "holm":
+            return np.full(E, c.level)
+        return np.minimum(plan.level, c.level + (rep * levels).sum(axis=1) / np.maximum(1, C - rep.sum(axis=1)))
     for k in range(1, K + 1):
         open_c = decision == 0
         active = open_c.any(axis=1)
@@ -156,11 +163,7 @@ def simulate(plan: Plan, models: dict, experiments: int, rng) -> dict:
                 rows = decision[:, j] == 0
                 if not rows.any():
                     continue
-                if plan.multiplicity == "holm":
-                    passed = (rep * levels).sum(axis=1) / np.maximum(1, C - rep.sum(axis=1))
-                    level = np.minimum(plan.level, c.level + passed)
-                else:
-                    level = np.full(E, c.level)
+                level = level_in_force(c, rep)
                 for lv in np.unique(level[rows]):
                     sel = rows & (level == lv)
                     upper = claim_bounds(plan, c, infos[:k], float(lv))[0]
@@ -174,10 +177,7 @@ def simulate(plan: Plan, models: dict, experiments: int, rng) -> dict:
             rows = decision[:, j] == 0
             if not rows.any():
                 continue
-            if plan.multiplicity == "holm":
-                level = np.minimum(plan.level, c.level + (rep * levels).sum(axis=1) / np.maximum(1, C - rep.sum(axis=1)))
-            else:
-                level = np.full(E, c.level)
+            level = level_in_force(c, rep)
             for lv in np.unique(level[rows]):
                 sel = rows & (level == lv)
                 lower = claim_bounds(plan, c, infos[:k], float(lv))[2]

@@ -26,9 +26,8 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import optax
-
 import numpy as np
+import optax
 
 from mcrl.algo import intrinsic as intrinsic_rewards
 from mcrl.algo import normaliser
