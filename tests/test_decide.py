@@ -268,10 +268,11 @@ def test_a_record_cut_short_by_a_crash_is_not_a_look(tmp_path):
 @pytest.mark.parametrize("edit, words", [
     ("level: 0.04", "add up to"), ("seeds: 1000..1011", "whole number of batches"),
     ("effect: 0.75", "planning P(X > Y)"), ("spending: pocock", "choose one of"),
-    ("multiplicity: holm", "choose holm")])
+    ("multiplicity: holm", "choose holm"), ("set: {total_steps", "remove seed")])
 def test_bad_plans_get_one_line_naming_the_fix(tmp_path, capsys, edit, words):
     bad = {"level: 0.04": "level: 0.045", "seeds: 1000..1011": "seeds: 1000..1010", "effect: 0.75": "effect: 1.5",
-           "spending: pocock": "spending: linear", "multiplicity: holm": "multiplicity: sidak"}[edit]
+           "spending: pocock": "spending: linear", "multiplicity: holm": "multiplicity: sidak",
+           "set: {total_steps": "set: {seed: 3, total_steps"}[edit]
     path = _plan(tmp_path, (PLAN % ("holm", "pocock")).replace(edit, bad, 1))
     assert main(["decide", str(path), "--dry-run"]) == 2
     err = capsys.readouterr().err

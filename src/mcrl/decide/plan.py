@@ -247,8 +247,10 @@ def load_plan(path: str | Path) -> Plan:
                             "directories)")
         if ov is not None and not isinstance(ov, dict):
             raise MCRLError(f"{where}: arm {name}: give a mapping of config overrides (or {{}})")
-        if ov and ("seed" in ov or "seed" in fixed):
+        if ov and "seed" in ov:
             raise MCRLError(f"{where}: arm {name}: seeds come from the plan's seeds list: remove seed")
+    if "seed" in fixed:
+        raise MCRLError(f"{where}: set: seeds come from the plan's seeds list: remove seed")
     arms = {k: dict(v or {}) for k, v in arms.items()}
     seeds = _seeds(doc["seeds"], where)
     batch = doc["batch"]
