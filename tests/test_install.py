@@ -130,6 +130,25 @@ def test_makefile_installs_with_constraints_and_reinstalls_when_they_change(tmp_
     assert stale.returncode == 1, "make does not reinstall when constraints.txt changes"
 
 
+def test_the_version_is_the_installed_one_and_the_changelog_says_what_changed():
+    """pyproject.toml, `mcrl.__version__` and the installed metadata (which provenance.json records) name one
+    version, the changelog's newest section is that version's, and it is 0.2.0 or later: 0.2.0 is the first
+    version that refuses the files 0.1 wrote (Config.from_run_json, checkpoint.py), so a version that went back
+    would let files of two formats carry one number."""
+    from importlib.metadata import version as installed
+
+    import mcrl
+
+    version = _pyproject()["project"]["version"]
+    assert mcrl.__version__ == version, f"mcrl.__version__ {mcrl.__version__} != pyproject.toml's {version}"
+    assert installed("mcrl") == version, (f"the installed metadata says {installed('mcrl')}, pyproject.toml "
+                                          f"{version}: reinstall (`make install`)")
+    assert Version(version) >= Version("0.2.0")
+    sections = re.findall(r"^## \[?(\d+\.\d+\.\d+)\]? - \d{4}-\d{2}-\d{2}$", (REPO / "CHANGELOG.md").read_text(),
+                          re.M)
+    assert sections and sections[0] == version, f"CHANGELOG.md's newest section is {sections[:1]}, not {version}"
+
+
 def test_install_versions_differ_from_the_tested_set():
     """The slow test's premise: its numpy/matplotlib are compatible, and not the ones pip would pick itself."""
     pins = _constraints()

@@ -10,7 +10,7 @@ from mcrl.config import PRESETS, Config, resolve_config
 from mcrl.errors import MCRLError
 
 __all__ = ["PRESETS", "Config", "MCRLError", "resolve_config", "train", "evaluate_run"]
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 def train(config: Config, run_dir=None, progress: bool = True):
