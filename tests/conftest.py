@@ -52,7 +52,7 @@ def pytest_unconfigure(config):
 # 2-worker run on 2 cores (AMD EPYC Zen 4, 2026-11-29; test_schedule.py, added later, by its ~7 min alone on 2 busy
 # cores); files not named keep their alphabetical order after these.
 LONGEST_FIRST = ["test_intrinsic.py", "test_vmap.py", "test_learning.py", "test_schedule.py", "test_sweep.py",
-                 "test_chaos.py",
+                 "test_chaos.py", "test_losses.py",
                  "test_precision.py", "test_install.py", "test_decide.py", "test_report.py", "test_faults.py",
                  "test_gpu_script.py", "test_mc.py", "test_resume.py", "test_sac.py", "test_migrate.py",
                  "test_render.py"]

@@ -9,6 +9,8 @@
   4. critics (clipped double-Q target, polyak targets), actor, entropy coefficient — in the order of
      stable-baselines3 (entropy coefficient read before its own update);
   5. the intrinsic models' Adam step (so the reward used step t's models before their update, like the thesis).
+The losses and the reward mix are pure functions of arrays in `mcrl.algo.losses` (each checked alone by hand);
+`update` applies the networks, hands their outputs to those functions and takes the gradients and Adam steps.
 `state` holds only what learns (parameters, optimiser states, targets, the normaliser's history, the key);
 `metrics` are the step's numbers by name, which the training loop adds up on the device in the same compiled
 call (`mcrl.algo.diagnostics`) and reads only at log intervals.
@@ -30,7 +32,7 @@ import numpy as np
 import optax
 
 from mcrl.algo import intrinsic as intrinsic_rewards
-from mcrl.algo import normaliser
+from mcrl.algo import losses, normaliser
 from mcrl.algo.intrinsic import IntrinsicReward
 from mcrl.algo.networks import GaussianHead, TwinCritic
 from mcrl.config import Config
@@ -258,13 +260,11 @@ class Agent:
         if cfg.use_intrinsic_models:
             step = self.intrinsic_reward(state, batch)
             m.update(step.metrics)
-            if mix is not None:  # the weights as data: exactly r_ext where alpha is 0 (a schedule's end, SAC runs)
-                reward = jnp.where(mix.intrinsic > 0, mix.ext * batch.reward + mix.intrinsic * step.reward, reward)
-            elif hyper is not None:  # alpha as data: exactly r_ext where it is 0 (a SAC run of a vmapped group)
-                reward = jnp.where(h.intrinsic_alpha > 0,
-                                   (1.0 - h.intrinsic_alpha) * batch.reward + h.intrinsic_alpha * step.reward, reward)
-            elif cfg.intrinsic_alpha > 0:
-                reward = (1.0 - cfg.intrinsic_alpha) * batch.reward + cfg.intrinsic_alpha * step.reward
+            # Without `mix`, its weights from `hyper`'s alpha (the config's without `hyper`), 1 - alpha computed here:
+            # in float64 on the host for the config's float (as `Mix.of`), in float32 in the step for a float32
+            # `Hyper` (as `Mix.of_float32`), so every learner keeps the numbers of its step before issue 66.
+            w = Mix(1.0 - h.intrinsic_alpha, h.intrinsic_alpha) if mix is None else mix
+            reward = losses.reward_mix(batch.reward, step.reward, w.ext, w.intrinsic)
             learned = self._adam(Learned(intrinsic.params, intrinsic.opt), step.grads, h.intrinsic_lr)
             intrinsic = IntrinsicModels(learned.params, learned.opt, step.untrained)
             norm = step.norm
@@ -277,12 +277,11 @@ class Agent:
         mean_n, log_std_n = self.actor_net.apply({"params": state.pi.params}, batch.next_obs)
         a_next, logp_next = tanh_gaussian_sample(mean_n, log_std_n, k_next, cfg.squash_correction)
         q_next = self.critic_net.apply({"params": state.q_target}, batch.next_obs, a_next).min(0)
-        target = reward + (1.0 - batch.terminated) * h.gamma * (q_next - ent_coef * logp_next)
-        target = jax.lax.stop_gradient(target)
+        target = losses.critic_target(reward, batch.terminated, h.gamma, q_next, ent_coef, logp_next)
 
         def critic_loss_fn(params):
             q = self.critic_net.apply({"params": params}, batch.obs, batch.action)
-            return 0.5 * jnp.square(q - target[None]).mean(-1).sum(), q.mean()
+            return losses.critic_loss(q, target), q.mean()
 
         (critic_loss, q_mean), g = jax.value_and_grad(critic_loss_fn, has_aux=True)(state.q.params)
         q = self._adam(state.q, g, h.learning_rate)
@@ -293,14 +292,13 @@ class Agent:
             u, logp = gaussian_sample(mean, log_std, k_pi)
             logp = logp - squash_log_det(u, cfg.squash_correction)
             q_pi = self.critic_net.apply({"params": q.params}, batch.obs, jnp.tanh(u)).min(0)
-            return (ent_coef * logp - q_pi).mean(), (logp, u)
+            return losses.actor_loss(ent_coef, logp, q_pi), (logp, u)
 
         (actor_loss, (logp, u_pi)), g = jax.value_and_grad(actor_loss_fn, has_aux=True)(state.pi.params)
         pi = self._adam(state.pi, g, h.learning_rate)
 
         # entropy coefficient, from the same (pre-update) policy sample
-        ent_target = jax.lax.stop_gradient(logp + self.target_entropy)
-        ent_loss, g = jax.value_and_grad(lambda le: -(le * ent_target).mean())(state.ent.params)
+        ent_loss, g = jax.value_and_grad(losses.entropy_loss)(state.ent.params, logp, self.target_entropy)
         ent = self._adam(state.ent, g, h.learning_rate)
 
         q_target = optax.incremental_update(q.params, state.q_target, h.tau)
