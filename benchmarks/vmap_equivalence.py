@@ -26,21 +26,22 @@ import numpy as np
 from _common import write_json
 from mcrl.analysis.stats import bootstrap_ci
 from mcrl.run.rundir import read_json, read_rows
+from mcrl.renames import new_names
 
 N_BOOT = 10_000
 
 
 def read_runs(exp: Path) -> dict[tuple[float, int], dict[str, float]]:
-    """(mc_alpha, seed) -> {"success", "return", "auc"} for every finished run of an experiment directory."""
+    """(intrinsic_alpha, seed) -> {"success", "return", "auc"} for every finished run of an experiment directory."""
     out = {}
     for rd in sorted((exp / "runs").iterdir()):
         if not (rd / "done").exists():
             continue
-        cfg, final = read_json(rd / "config.json"), read_json(rd / "final_eval.json")
+        cfg, final = new_names(read_json(rd / "config.json")), read_json(rd / "final_eval.json")
         total = cfg["total_steps"]
         curve = [r["success_rate"] for r in read_rows(rd / "eval.csv")
                  if r["step"] < total and r.get("success_rate") is not None]
-        out[(float(cfg["mc_alpha"]), int(cfg["seed"]))] = {
+        out[(float(cfg["intrinsic_alpha"]), int(cfg["seed"]))] = {
             "success": final["success_rate"], "return": final["mean_return"],
             "auc": float(np.mean(curve)) if curve else float("nan")}
     return out

@@ -83,7 +83,9 @@ def migrate_config(d: dict) -> dict:
 
 def window_capacity(cfg: dict) -> int:
     """KL values the normaliser's window holds under a (migrated) config; 0 = the whole run, no ring."""
-    history = cfg.get("intrinsic_history", cfg.get("mc_history"))  # either name (mcrl.config.STORED_AS)
+    from mcrl.renames import new_names
+
+    history = new_names(cfg).get("intrinsic_history")  # either name (mcrl.renames)
     if history is None:
         return 0
     per_step = 1 if cfg.get("mc_reduction") == "batch" else int(cfg["batch_size"])

@@ -159,7 +159,9 @@ def test_run_dirs_written_by_mcrl_0_1_are_refused_with_the_migration_named(tmp_p
     from mcrl.errors import MCRLError
     from mcrl.run.rundir import read_config
 
-    old = {**Config().to_dict(), "mc_history": 400_000, "batch_size": 256}
+    from mcrl.renames import old_name
+
+    old = {**{old_name(k): v for k, v in Config().to_dict().items()}, "mc_history": 400_000, "batch_size": 256}
     del old["init"], old["final_eval_episodes"]
     (tmp_path / "config.json").write_text(json.dumps(old))
     with pytest.raises(MCRLError, match="scripts/migrate_checkpoint.py"):

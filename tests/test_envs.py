@@ -21,7 +21,7 @@ def test_families_say_how_success_is_read_and_what_the_bound_needs():
     assert success_of({"reward_ctrl": 0.1}) is None
     # the divergence bound reads the family: FetchPush's 0 before MC, AntMaze's 1; none for an unknown family
     assert reward_max({"env_id": "FetchPush-v4"}) == 0.0
-    assert reward_max({"env_id": "AntMaze_UMazeDense-v5", "mc_alpha": 0.2, "mc_reward_high": 1.0}) == 1.0
+    assert reward_max({"env_id": "AntMaze_UMazeDense-v5", "intrinsic_alpha": 0.2, "intrinsic_reward_high": 1.0}) == 1.0
     assert reward_max({"env_id": "Pendulum-v1"}) is None
 
 

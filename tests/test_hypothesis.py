@@ -81,7 +81,7 @@ def test_power_grows_with_seeds_and_effect() -> None:
 # ------------------------------------------------------------------ the soft-Q bound
 
 
-FETCH = {"env_id": "FetchPush-v4", "gamma": 0.99, "tau": 0.005, "mc_alpha": 0.0}
+FETCH = {"env_id": "FetchPush-v4", "gamma": 0.99, "tau": 0.005, "intrinsic_alpha": 0.0}
 
 
 def test_the_bound_from_theory() -> None:
@@ -89,7 +89,7 @@ def test_the_bound_from_theory() -> None:
     assert soft_q_bound(1.0, 4, 0.99, 0.0) == pytest.approx(4 * math.log(2) * 99)
     assert lag_steps(0.99, 0.005) == 20_000
     assert reward_max(FETCH) == 0.0 and reward_max({"env_id": "Pendulum-v1"}) is None
-    assert reward_max({"env_id": "AntMaze_UMazeDense-v5", "mc_alpha": 0.2, "mc_reward_high": 1.0}) == pytest.approx(1.0)
+    assert reward_max({"env_id": "AntMaze_UMazeDense-v5", "intrinsic_alpha": 0.2, "intrinsic_reward_high": 1.0}) == pytest.approx(1.0)
     # the coefficient falls from 1 to 0.01 by step 10k: the lagged bound keeps 1's until 20k steps later
     steps = np.arange(1000, 60_001, 1000)
     coef = np.where(steps <= 10_000, 1.0, 0.01)

@@ -10,6 +10,7 @@ import pytest
 
 from mcrl.config import resolve_config
 from mcrl.errors import MCRLError
+from mcrl.renames import old_name
 from mcrl.run import checkpoint
 from mcrl.run.rundir import LEARNING_COLUMNS, read_rows
 from mcrl.run.trainer import resume, train
@@ -106,6 +107,9 @@ def test_an_mcrl_0_1_run_migrates_and_resumes_exactly(tmp_path, small):
     for path in (old / "config.json", ck / "meta.json"):
         d = json.loads(path.read_text())
         cfg = d.get("config", d)
+        old_names = {old_name(k): v for k, v in cfg.items()}  # 0.1 wrote the keys under their old names
+        cfg.clear()
+        cfg.update(old_names)
         del cfg["init"]
         cfg["mc_history"] = 192
         path.write_text(json.dumps(d))
@@ -113,7 +117,7 @@ def test_an_mcrl_0_1_run_migrates_and_resumes_exactly(tmp_path, small):
         resume(old, progress=False)
     assert _script().main([str(old)]) == 0
     assert json.loads((ck / "meta.json").read_text())["migrated_from"] == "0.1"
-    assert json.loads((old / "config.json").read_text())["mc_history"] == 3
+    assert json.loads((old / "config.json").read_text())["intrinsic_history"] == 3  # today's name
     _assert_resume_alike(today, old)
 
 

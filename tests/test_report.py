@@ -382,9 +382,9 @@ def test_groups_differ_by_every_setting(tmp_path: Path) -> None:
     (exp / "sweep.json").write_text(json.dumps({"preset": "custom", "runs": runs}))
     groups = {g.key: [r.name for r in g.runs] for g in load_experiment(exp).configs}
     assert groups == {
-        "mc_alpha=0, mc_reduction=transition, mc_state=observation": ["sac-s0", "sac-s1", "sac-s2"],
-        "mc_alpha=0.2, mc_reduction=batch, mc_state=full": ["mc-full-s0", "mc-full-s1", "mc-full-s2"],
-        "mc_alpha=0.2, mc_reduction=transition, mc_state=observation": ["mc-s0", "mc-s1"],
+        "intrinsic_alpha=0, intrinsic_state=observation, mc_reduction=transition": ["sac-s0", "sac-s1", "sac-s2"],
+        "intrinsic_alpha=0.2, intrinsic_state=full, mc_reduction=batch": ["mc-full-s0", "mc-full-s1", "mc-full-s2"],
+        "intrinsic_alpha=0.2, intrinsic_state=observation, mc_reduction=transition": ["mc-s0", "mc-s1"],
     }
 
 
@@ -497,8 +497,8 @@ def test_arms_are_named_by_what_they_are_and_can_be_labelled(tmp_path: Path,
 
     keys = [g.key for g in load_experiment(exp, [variant]).configs]
     assert "fetchpush-sacmc-0.2" not in keys  # two sweeps: their keys no longer name the arms
-    assert "mc_alpha=0.2, mc_reduction=batch, mc_state=full" in keys
-    assert "mc_alpha=0.2, mc_reduction=transition, mc_state=observation" in keys
+    assert "intrinsic_alpha=0.2, intrinsic_state=full, mc_reduction=batch" in keys
+    assert "intrinsic_alpha=0.2, intrinsic_state=observation, mc_reduction=transition" in keys
     keys = [g.key for g in load_experiment(exp, [f"{variant}=SAC-MC, code variant"]).configs]
     assert set(keys) == {"alpha=0", "alpha=0.2", "SAC-MC, code variant"}
     # a second unnamed sweep (the alpha curve beside the main arms): the sweeps' keys no longer name the arms, and
@@ -622,7 +622,7 @@ def test_arms_that_differ_only_in_the_reward_are_named_by_algorithm(tmp_path: Pa
     n = len(FINALS["alpha=0.2"])
     assert [(g.key, len(g.runs), len(g.finished)) for g in groups] == [
         ("SAC", n, n), ("SAC+Disagreement 0.2", n, 0), ("SAC+RND 0.2", n, n), ("SAC-MC 0.2", n, n)]
-    assert groups[1].mc_alpha == 0.2 and groups[1].intrinsic == "disagreement" and groups[1].total_steps == TOTAL
+    assert groups[1].intrinsic_alpha == 0.2 and groups[1].intrinsic == "disagreement" and groups[1].total_steps == TOTAL
     # its final-table row gives the configured budget and no mean, rather than "?" and "n/a n/a"
     row = _row(_section(write_report(partial, tmp_path / "rep", extra_runs=[exp]).read_text(),
                         "Final performance per configuration"), "`SAC+Disagreement 0.2`")

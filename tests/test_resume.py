@@ -78,15 +78,31 @@ def test_a_run_from_before_the_renames_resumes_exactly(tmp_path, small):
 
     import numpy as np
 
-    from mcrl.config import RENAMED, resolve_config
+    from mcrl.config import resolve_config
     from mcrl.run import rundir
-    from mcrl.run.checkpoint import RENAMED_KEYS
-    from mcrl.run.rundir import RENAMED_COLUMNS, read_rows
+    from mcrl.run.rundir import read_rows
     from mcrl.run.trainer import resume, train
 
+    # the names mcrl wrote before the renames, written out here (not taken from mcrl.renames: the test checks it)
+    old_keys = {"intrinsic_alpha": "mc_alpha", "intrinsic_models": "mc_models", "intrinsic_lr": "mc_lr",
+                "intrinsic_hidden_sizes": "mc_hidden_sizes", "intrinsic_state": "mc_state",
+                "intrinsic_history": "mc_history", "intrinsic_reward_low": "mc_reward_low",
+                "intrinsic_reward_high": "mc_reward_high"}
+    old_columns = {"mean_intrinsic_reward": "mean_mc_reward", "intrinsic_bound_low": "mc_bound_low",
+                   "intrinsic_bound_high": "mc_bound_high"}
+    old_paths = ((".intrinsic.", ".mc_models."),
+                 (".metric_sums['mean_intrinsic_reward']", ".metric_sums['mean_mc_reward']"))
     cfg = resolve_config("fetchreach-sacmc", {**small, "total_steps": 300, "eval_every": 150, "log_every": 50,
                                               "checkpoint_every": 100, "keep_checkpoints": 5})
     full = train(cfg, tmp_path / "full", progress=False)
+    # today's files hold only today's names
+    written = json.loads((full / "config.json").read_text())
+    meta = json.loads((full / "checkpoints" / rundir.checkpoint_name(300) / "meta.json").read_text())
+    header = (full / "metrics.csv").read_text().split("\n")[0].split(",")
+    assert written["intrinsic_alpha"] == 0.2 and meta["config"] == written
+    assert not set(old_keys.values()) & (set(written) | set(meta["config"])) and not set(old_columns.values()) & set(header)
+    assert set(old_columns) <= set(header)
+
     old = tmp_path / "old"
     shutil.copytree(full, old)
     shutil.rmtree(old / "checkpoints" / rundir.checkpoint_name(300))
@@ -94,19 +110,19 @@ def test_a_run_from_before_the_renames_resumes_exactly(tmp_path, small):
     for name in (rundir.DONE, rundir.FINAL_EVAL):
         (old / name).unlink()
     # ... written by the code before the renames
-    new_to_old = {new: o for o, new in RENAMED.items()}
-    (old / "config.json").write_text(json.dumps({new_to_old.get(k, k): v for k, v in cfg.fields().items()}))
+    (old / "config.json").write_text(json.dumps({old_keys.get(k, k): v for k, v in written.items()}))
     for ck in (old / "checkpoints").glob("step_*"):
         with np.load(ck / "state.npz") as f:
             arrays = {k: f[k] for k in f.files}
-        for o, new in RENAMED_KEYS:
+        for new, o in old_paths:
             arrays = {(o + k[len(new):] if k.startswith(new) else k): v for k, v in arrays.items()}
         assert any(k.startswith(".mc_models.params") for k in arrays)
+        assert ".metric_sums['mean_mc_reward']" in arrays
         np.savez(ck / "state.npz", **arrays)
     header, *lines = (old / "metrics.csv").read_text().split("\n")
-    header = ",".join({new: o for o, new in RENAMED_COLUMNS.items()}.get(c, c) for c in header.split(","))
+    header = ",".join(old_columns.get(c, c) for c in header.split(","))
     (old / "metrics.csv").write_text("\n".join([header, *lines]))
-    assert "mean_mc_reward" in read_rows(old / "metrics.csv")[-1]  # read under both names
+    assert "mean_mc_reward" not in read_rows(old / "metrics.csv")[-1]  # read under today's name only
     assert read_rows(old / "metrics.csv")[-1]["mean_intrinsic_reward"] is not None
 
     resume(old, progress=False)

@@ -73,17 +73,17 @@ RUN_NAMES = ["a0-s0", "a0.2-s0", "a0-s1", "a0.2-s1"]
 def test_local_sweep_writes_the_experiment_directory(local_exp):
     exp, out = local_exp
     sweep = json.loads((exp / "sweep.json").read_text())
-    assert sweep["preset"] == "fetchreach-sacmc" and sweep["grid"] == {"mc_alpha": [0.0, 0.2], "seed": [0, 1]}
+    assert sweep["preset"] == "fetchreach-sacmc" and sweep["grid"] == {"intrinsic_alpha": [0.0, 0.2], "seed": [0, 1]}
     assert [r["name"] for r in sweep["runs"]] == RUN_NAMES  # seeds outermost
     assert [(r["config_key"], r["seed"]) for r in sweep["runs"]] == [
         ("alpha=0", 0), ("alpha=0.2", 0), ("alpha=0", 1), ("alpha=0.2", 1)]
-    assert sweep["runs"][1]["overrides"]["mc_alpha"] == 0.2
+    assert sweep["runs"][1]["overrides"]["intrinsic_alpha"] == 0.2
     for name in RUN_NAMES:
         run = exp / "runs" / name
         assert (run / "done").exists()
         cfg = json.loads((run / "config.json").read_text())
         assert cfg["total_steps"] == STEPS and cfg["seed"] == int(name[-1])
-        assert cfg["mc_alpha"] == (0.2 if name.startswith("a0.2") else 0.0)
+        assert cfg["intrinsic_alpha"] == (0.2 if name.startswith("a0.2") else 0.0)
         assert re.search(rf"start {re.escape(name)} \(pid \d+\)", out)
         assert re.search(rf"finished {re.escape(name)} in", out)
     from mcrl.analysis.report import load_experiment
@@ -113,7 +113,7 @@ def test_mlflow_holds_every_run_and_rerun_skips_finished_runs(local_exp):
     for _, row in df.iterrows():
         name = row["tags.mlflow.runName"]
         cfg = json.loads((exp / "runs" / name / "config.json").read_text())
-        assert float(row["params.mc_alpha"]) == cfg["mc_alpha"] and int(row["params.seed"]) == cfg["seed"]
+        assert float(row["params.intrinsic_alpha"]) == cfg["intrinsic_alpha"] and int(row["params.seed"]) == cfg["seed"]
         assert row["params.hidden_sizes"] == "[64, 64]" and row["params.config_key"].startswith("alpha=")
         with open(exp / "runs" / name / "eval.csv") as f:
             evals = list(csv.DictReader(f))

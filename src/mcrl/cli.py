@@ -79,13 +79,15 @@ def cmd_eval(args) -> int:
 
 def cmd_presets(args) -> int:
     from mcrl.config import KEY_NOTES, PRESETS, Config, resolve_config
+    from mcrl.renames import old_name
 
     if args.keys:
-        for k, v in Config().fields().items():
-            print(f"{k} = {v!r}" + (f"  # {KEY_NOTES[k]}" if k in KEY_NOTES else ""))
+        for k, v in Config().to_dict().items():
+            note = "; ".join(([KEY_NOTES[k]] if k in KEY_NOTES else []) + ([f"was {old_name(k)}"] * (old_name(k) != k)))
+            print(f"{k} = {v!r}" + (f"  # {note}" if note else ""))
         return 0
     if args.name:
-        print(json.dumps(resolve_config(args.name).fields(), indent=2, sort_keys=True))
+        print(json.dumps(resolve_config(args.name).to_dict(), indent=2, sort_keys=True))
         return 0
     width = max(map(len, PRESETS))
     for name, (desc, _) in PRESETS.items():

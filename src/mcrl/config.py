@@ -15,6 +15,7 @@ import yaml
 
 from mcrl.algo import intrinsic as intrinsic_rewards
 from mcrl.errors import MCRLError
+from mcrl.renames import new_names, trained_config
 
 
 @dataclass
@@ -45,7 +46,7 @@ class Config:
     her_k: int = 4  # sampled goals per real transition: relabel fraction k / (k + 1)
     her_rounding: str = "nearest"  # relabelled rows of a batch: nearest round(B k/(k+1)) = 205 of 256 | floor: int(),
     # 204 of 256, as stable-baselines3's HerReplayBuffer (the thesis' code's buffer)
-    # --- the intrinsic reward (docs/intrinsic.md); renamed keys were mc_* before (`RENAMED`) ---
+    # --- the intrinsic reward (docs/intrinsic.md); renamed keys were mc_* before (`mcrl.renames`) ---
     intrinsic: str = "mc"  # the reward intrinsic_alpha mixes in: a name of mcrl.algo.intrinsic's registry
     intrinsic_alpha: float = 0.0  # its weight: (1 - a) r_ext + a r_int; with a schedule, the weight at the start
     intrinsic_schedule: str = "constant"  # how the weight moves in training: constant | linear | success
@@ -95,33 +96,21 @@ class Config:
         """Capacity of the normaliser's window in raw values; None = every value of the run."""
         return None if self.intrinsic_history is None else self.intrinsic_history * self.intrinsic_values_per_step
 
-    def __getattr__(self, name: str) -> Any:
-        """Code written against the old names (`cfg.mc_alpha`, `cfg.use_mc_models`) keeps reading them."""
-        new = _OLD_ATTRIBUTES.get(name)
-        if new is None:
-            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
-        return getattr(self, new)
-
     @property
     def n_final_eval_episodes(self) -> int:
         return self.eval_episodes if self.final_eval_episodes is None else self.final_eval_episodes
 
     def to_dict(self) -> dict[str, Any]:
-        """Every field, as files store it (config.json, meta.json, sweep.json): the keys of `STORED_AS` under
-        their stored names."""
-        return stored(dataclasses.asdict(self))
+        """Every field by its name, as files store it (config.json, meta.json, sweep.json)."""
+        return dataclasses.asdict(self)
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
-    def fields(self) -> dict[str, Any]:
-        """Every field under its own name (what `mcrl presets` shows)."""
-        return dataclasses.asdict(self)
-
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "Config":
-        """A config from keys and values; the old names of renamed keys (`RENAMED`) are read as the new ones."""
-        d = canonical(d)
+        """A config from keys and values; old names of renamed keys (`mcrl.renames`) are read as today's."""
+        d = new_names(d)
         unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise MCRLError(f"unknown config key(s) {sorted(unknown)}: run `mcrl presets --keys` to list valid keys")
@@ -134,54 +123,21 @@ class Config:
         """A run directory's config.json; keys added since it was written take their defaults. One that lists
         `mc_history` but no `init` was written by mcrl 0.1 (Flax's initialisation, `mc_history` counted in KL
         values, not gradient steps): refused, not guessed."""
-        if "init" not in d and "mc_history" in d:
+        d = trained_config(d)  # a key added since: the behaviour it was trained with, whatever its default
+        if "init" not in d and "intrinsic_history" in d:
             raise MCRLError("this config.json was written by mcrl 0.1 (it has no `init`): convert its run directory "
                             "with `python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")
-        # a run trained before a key existed resumes with the behaviour it was trained with, whatever its default now
-        return cls.from_dict({**TRAINED_BEFORE_KEY, **d})
+        return cls.from_dict(d)
 
 
 # how the intrinsic weight moves during training (mcrl.algo.schedule; docs/intrinsic.md#schedules)
 SCHEDULES = ("constant", "linear", "success")
 
-# the value a key had in effect before it existed, for config.json files written then (`Config.from_run_json`)
-TRAINED_BEFORE_KEY: dict[str, Any] = {"squash_correction": "exact", "her_rounding": "nearest"}
-
-# Keys that serve every intrinsic reward but were named after MC, old name -> new name (issue 52). The old names
-# are read wherever a user or a file gives a key: --set, sweep files, resolve_config, config.json, sweep.json.
-RENAMED: dict[str, str] = {
-    "mc_alpha": "intrinsic_alpha", "mc_models": "intrinsic_models", "mc_lr": "intrinsic_lr",
-    "mc_hidden_sizes": "intrinsic_hidden_sizes", "mc_state": "intrinsic_state", "mc_history": "intrinsic_history",
-    "mc_reward_low": "intrinsic_reward_low", "mc_reward_high": "intrinsic_reward_high",
-}
-_OLD_ATTRIBUTES = {**RENAMED, "use_mc_models": "use_intrinsic_models",
-                   "mc_values_per_step": "intrinsic_values_per_step", "mc_history_values": "intrinsic_history_values"}
-# Files (config.json, meta.json, sweep.json) still store these keys under their old names, because the report
-# (mcrl.analysis) groups runs by `Config.to_dict()`'s keys and reads them by the old names; once it reads the new
-# ones, emptying this switches the files (readers take either name, so older files keep working).
-STORED_AS: dict[str, str] = {new: old for old, new in RENAMED.items()}
-
-
-def canonical(d: dict[str, Any]) -> dict[str, Any]:
-    """`d` with every old key name (`RENAMED`) replaced by the new one; both names with different values is an
-    error (which one was meant?)."""
-    for old, new in RENAMED.items():
-        if old in d and new in d and json.dumps(d[new], default=str) != json.dumps(d[old], default=str):
-            raise MCRLError(f"config keys {old}={d[old]!r} and {new}={d[new]!r} disagree: {old} is the old name of "
-                            f"{new}; give only {new}")
-    return {RENAMED.get(k, k): v for k, v in d.items()}  # in the order given (a grid's run names follow it)
-
-
-def stored(d: dict[str, Any]) -> dict[str, Any]:
-    """`d` (new key names) with its keys as files store them (`STORED_AS`)."""
-    return {STORED_AS.get(k, k): v for k, v in d.items()}
-
-
 # One line about a key, where its name alone does not say it (`mcrl presets --keys` prints it beside the key).
 KEY_NOTES: dict[str, str] = {
     "intrinsic": "the intrinsic reward intrinsic_alpha mixes in: mc (thesis) | rnd | icm | disagreement "
                  "(docs/intrinsic.md), or any other registered in mcrl.algo.intrinsic",
-    "intrinsic_alpha": "weight of the intrinsic reward: (1 - a) r_ext + a r_int; 0 = plain SAC (was mc_alpha)",
+    "intrinsic_alpha": "weight of the intrinsic reward: (1 - a) r_ext + a r_int; 0 = plain SAC",
     "intrinsic_schedule": "how intrinsic_alpha moves in training: constant | linear (to intrinsic_alpha_end over "
                           "intrinsic_schedule_steps) | success (alpha (1 - s), s the training success average)",
     "intrinsic_alpha_end": "linear schedule: the weight it ends at, in [0, 1] (default 0: hand over to the task)",
@@ -189,16 +145,14 @@ KEY_NOTES: dict[str, str] = {
                                 "total_steps",
     "intrinsic_success_window": "success schedule: training episodes the success average s covers",
     "intrinsic_models": "train the intrinsic reward's models even at intrinsic_alpha=0 (null: iff intrinsic_alpha "
-                        "> 0; was mc_models)",
-    "intrinsic_lr": "Adam learning rate of the intrinsic reward's models (was mc_lr)",
+                        "> 0)",
+    "intrinsic_lr": "Adam learning rate of the intrinsic reward's models",
     "intrinsic_hidden_sizes": "MC models' hidden layers; rnd/icm/disagreement use their papers' depths at its "
-                              "widest width (was mc_hidden_sizes)",
-    "intrinsic_state": "the state the intrinsic reward sees: observation | full (+ achieved and desired goal; "
-                       "was mc_state)",
-    "intrinsic_history": "gradient steps of raw values the normaliser's percentiles cover; null = the whole run "
-                         "(was mc_history)",
-    "intrinsic_reward_low": "the normalised intrinsic reward's range is [low, high] (was mc_reward_low)",
-    "intrinsic_reward_high": "the normalised intrinsic reward's range is [low, high] (was mc_reward_high)",
+                              "widest width",
+    "intrinsic_state": "the state the intrinsic reward sees: observation | full (+ achieved and desired goal)",
+    "intrinsic_history": "gradient steps of raw values the normaliser's percentiles cover; null = the whole run",
+    "intrinsic_reward_low": "the normalised intrinsic reward's range is [low, high]",
+    "intrinsic_reward_high": "the normalised intrinsic reward's range is [low, high]",
     "mc_reduction": "MC only: transition (each transition's KL, thesis text) | batch (one batch-mean KL, its code)",
     "her_rounding": "relabelled rows per batch: nearest round(B k/(k+1)) | floor int(B k/(k+1)), as SB3's buffer",
     "squash_correction": "tanh log-prob correction: exact log(1 - tanh(u)^2) | epsilon log(1 - a^2 + 1e-6) "
@@ -248,7 +202,7 @@ def resolve_config(preset: str | None = None, overrides: dict[str, Any] | None =
             raise MCRLError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)} (`mcrl presets`)")
         d.update(PRESETS[preset][1])
         d["preset"] = preset
-    d.update(canonical(overrides or {}))
+    d.update(new_names(overrides or {}))
     return Config.from_dict(d)
 
 

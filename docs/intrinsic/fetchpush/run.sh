@@ -48,7 +48,9 @@ case "${1:-status}" in
     echo "the sweep ended at $(date +%T), $(( $(date +%s) - t0 )) s after the signal"
     tail -n 3 "$WORK/$EXP.log" ;;
   report)
-    "$REPO/.venv/bin/mcrl" report "$HERE/$EXP" --with "$REPO/docs/reproduction/fetchpush/main" --out "$HERE/report" ;;
+    # paths relative to the repository, so that the committed report names no machine's directories
+    cd "$REPO" && .venv/bin/mcrl report "docs/intrinsic/fetchpush/$EXP" --with docs/reproduction/fetchpush/main \
+      --out docs/intrinsic/fetchpush/report ;;
   start)
     install_code "$REPO" "$CODE" "$COMMIT"
     restore_runs "$HERE/$EXP" "$WORK/$EXP"

@@ -12,10 +12,6 @@ INTRINSIC_METRICS = ("transition_model_loss", "action_model_loss", "mean_intrins
                      "intrinsic_loss", "mean_raw_intrinsic")
 # The normaliser's bounds at the end of a log interval (raw-value percentiles), beside the means.
 BOUNDS = ("intrinsic_bound_low", "intrinsic_bound_high")
-# metrics.csv columns renamed in issue 52, old name -> new name: runs before it wrote the old ones, and the run
-# directory's readers give both (`mcrl.run.rundir.read_rows`).
-RENAMED_COLUMNS = {"mean_mc_reward": "mean_intrinsic_reward", "mc_bound_low": "intrinsic_bound_low",
-                   "mc_bound_high": "intrinsic_bound_high"}
 
 
 def reported(own: tuple[str, ...] | None) -> tuple[str, ...]:

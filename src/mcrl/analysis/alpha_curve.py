@@ -1,4 +1,4 @@
-"""The thesis' alpha curve beside mcrl's (issue 50): final success and return per mc_alpha with intervals, a plot
+"""The thesis' alpha curve beside mcrl's (issue 50): final success and return per intrinsic_alpha with intervals, a plot
 against alpha with the thesis' numbers marked where it gives them (its words where it does not), and a verdict on
 each of its claims about alpha > 0.2 (0.4 and 0.6 about the same as SAC, 0.8 and 1.0 worse), decided in the family
 of mcrl's SAC arm (:mod:`mcrl.analysis.families`)."""
@@ -23,12 +23,12 @@ THESIS_WORDS = {"same": "about the same as SAC", "worse": "below SAC"}
 
 
 def curve_groups(exp: Experiment) -> dict[float, ConfigGroup]:
-    """mcrl's SAC and plain SAC-MC arms (the thesis' MC reward), by mc_alpha; the first arm of each alpha."""
+    """mcrl's SAC and plain SAC-MC arms (the thesis' MC reward), by intrinsic_alpha; the first arm of each alpha."""
     sac, mc = sac_and_mc(exp)
     out: dict[float, ConfigGroup] = {}
     for g in [*sac, *mc]:
         if not is_code_variant(g):
-            out.setdefault(round(float(g.mc_alpha or 0.0), 6), g)
+            out.setdefault(round(float(g.intrinsic_alpha or 0.0), 6), g)
     return dict(sorted(out.items()))
 
 
@@ -74,7 +74,7 @@ def _plot(groups: dict[float, ConfigGroup], refs: list[ConfigGroup], t: dict[str
         ax.plot(worse, [sac_th[th_key]] * len(worse), "v", mfc="none", color="C3", ms=9,
                 label="thesis: below SAC's (words)")
         ax.set_xticks(sorted({*groups, *t["by_alpha"], *t["alpha_curve"]}))
-        ax.set_xlabel("mc_alpha (share of the MC reward)")
+        ax.set_xlabel("intrinsic_alpha (share of the MC reward)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="best")
@@ -85,7 +85,7 @@ def _line(a: float, claim: str, r: ClaimResult | None, g: ConfigGroup | None) ->
     text = f"the thesis' claim that SAC-MC alpha={a:.1f} is {THESIS_WORDS[claim]}"
     if r is None:
         why = "this report has no finished run of it, 0 seeds (add its experiment with `--with DIR`)" if g is None \
-            else "this report has no SAC arm (mc_alpha = 0) to test it against"
+            else "this report has no SAC arm (intrinsic_alpha = 0) to test it against"
         return f"**Not decidable with this many seeds**: {text}: {why}."
     cell = verdict_cell(r)
     head = f"{cell[:2]}{cell[2:3].upper()}{cell[3:]}: {text}, X = `{g.key if g else r.x_name}`, Y = {r.y_name}, {r.test.n_x} vs {r.test.n_y} seeds"
@@ -122,7 +122,7 @@ def alpha_curve_blocks(exp: Experiment, claims: ReportClaims, t: dict[str, Any])
     refs = reference_sac(exp)
     return [
         Heading(3, "The thesis' alpha curve"),
-        Paragraph("Final success and return per mc_alpha, mcrl's arms (95% bootstrap CIs) beside the thesis' section "
+        Paragraph("Final success and return per intrinsic_alpha, mcrl's arms (95% bootstrap CIs) beside the thesis' section "
                   "4.1.3, which gives numbers for 0 and 0.2 (Tables 4.2-4.3) and two mean rewards, and words for the "
                   "rest: at 0.4 and 0.6 'the success rate ... becomes comparable to that of the baseline SAC' and the "
                   "average reward 'converges with that of the baseline SAC with a mean reward of 28.81 and 28.96' "
@@ -131,10 +131,10 @@ def alpha_curve_blocks(exp: Experiment, claims: ReportClaims, t: dict[str, Any])
                   f"same' is tested with a margin of {margin:.3g}, half the thesis' SAC-MC 0.2 lead, by two one-sided "
                   "exact rank-sum tests (TOST); 'below SAC' as a one-sided test of X < Y, refuted when a deficit as "
                   "large as that lead is excluded. Both are tested against mcrl's SAC in its family."),
-        Table(["mc_alpha", "thesis success", "ours success [95% CI]", "thesis mean reward",
+        Table(["intrinsic_alpha", "thesis success", "ours success [95% CI]", "thesis mean reward",
                "ours final return [95% CI]", "seeds", "thesis' claim", "verdict"], rows),
         Figure("alpha_curve.png", _plot(groups, refs, t, margin),
-               "Final success and return against mc_alpha: mcrl's arms (mean, 95% bootstrap CI; grey squares: "
+               "Final success and return against intrinsic_alpha: mcrl's arms (mean, 95% bootstrap CI; grey squares: "
                "reference SAC arms at alpha 0), the thesis' numbers (x), its 'about the same as SAC' (hollow circle "
                "at its SAC value, bar: the margin) and its 'below SAC' (hollow triangle at its SAC value)."),
         Bullets(lines),

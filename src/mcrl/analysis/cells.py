@@ -79,24 +79,24 @@ def mcrl_groups(exp: Experiment) -> list[ConfigGroup]:
 
 
 def sac_and_mc(exp: Experiment) -> tuple[list[ConfigGroup], list[ConfigGroup]]:
-    """mcrl's finished SAC (mc_alpha 0) and SAC-MC (mc_alpha > 0, intrinsic=mc) configurations."""
-    with_data = [g for g in mcrl_groups(exp) if g.finished and g.mc_alpha is not None]
-    return ([g for g in with_data if g.mc_alpha == 0.0],
-            [g for g in with_data if g.mc_alpha > 0.0 and g.intrinsic == "mc"])
+    """mcrl's finished SAC (intrinsic_alpha 0) and SAC-MC (intrinsic_alpha > 0, intrinsic=mc) configurations."""
+    with_data = [g for g in mcrl_groups(exp) if g.finished and g.intrinsic_alpha is not None]
+    return ([g for g in with_data if g.intrinsic_alpha == 0.0],
+            [g for g in with_data if g.intrinsic_alpha > 0.0 and g.intrinsic == "mc"])
 
 
 def other_intrinsic(exp: Experiment) -> list[ConfigGroup]:
     """mcrl's finished configurations that mix in another intrinsic reward than MC (RND, ICM, Disagreement)."""
-    return [g for g in mcrl_groups(exp) if g.finished and (g.mc_alpha or 0.0) > 0.0 and g.intrinsic != "mc"]
+    return [g for g in mcrl_groups(exp) if g.finished and (g.intrinsic_alpha or 0.0) > 0.0 and g.intrinsic != "mc"]
 
 
 def reference_sac(exp: Experiment) -> list[ConfigGroup]:
-    """Finished reference arms (trained by another system) at mc_alpha 0: other implementations of SAC."""
-    return [g for g in exp.configs if g.peer and g.finished and (g.mc_alpha or 0.0) == 0.0]
+    """Finished reference arms (trained by another system) at intrinsic_alpha 0: other implementations of SAC."""
+    return [g for g in exp.configs if g.peer and g.finished and (g.intrinsic_alpha or 0.0) == 0.0]
 
 
 def is_code_variant(g: ConfigGroup) -> bool:
     """Runs with the thesis' code's MC reward: one batch-mean KL for all transitions, the whole observation."""
     started = [r for r in g.runs if r.config]  # a run not started yet has no config.json to tell
-    return bool(started) and all(r.config.get("mc_reduction") == "batch" and r.config.get("mc_state") == "full"
+    return bool(started) and all(r.config.get("mc_reduction") == "batch" and r.config.get("intrinsic_state") == "full"
                                  for r in started)

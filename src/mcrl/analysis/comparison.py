@@ -40,7 +40,7 @@ def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[st
     ours_all = [*mcrl_groups(exp), *(g for g in exp.configs if g.peer)]
     for alpha, th in t["by_alpha"].items():
         label = "SAC" if alpha == 0 else f"SAC-MC alpha={alpha:g}"
-        ours = [g for g in ours_all if g.mc_alpha is not None and math.isclose(g.mc_alpha, alpha)
+        ours = [g for g in ours_all if g.intrinsic_alpha is not None and math.isclose(g.intrinsic_alpha, alpha)
                 and (alpha == 0 or g.intrinsic == "mc")]  # RND & co. at 0.2 are not the thesis' SAC-MC
         if not ours:
             rows.append([label, f"{th['success_mean']:.2f}", "not in this sweep", f"{th['success_var']:.2f}", "",
@@ -103,7 +103,7 @@ def _claim_lines(exp: Experiment, claims: ReportClaims, claimed: float) -> list[
     for what in ("SAC-MC alpha=0.2", CODE_VARIANT):
         if not any(r.what == what for r in mine):
             have_sac = bool(sac_and_mc(exp)[0] or reference_sac(exp))
-            side = "SAC (mc_alpha = 0)" if not have_sac else what
+            side = "SAC (intrinsic_alpha = 0)" if not have_sac else what
             hint = " (add its experiment with `--with DIR`)" if have_sac and what == CODE_VARIANT else ""
             out.append(f"**{NOT_DECIDABLE.capitalize()}**: {_claim_text(what, claimed)}: this report has no finished "
                        f"run of {side}, 0 seeds{hint}.")
@@ -140,7 +140,7 @@ def thesis_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
         Heading(2, f"Comparison with the thesis ({name})"),
         Table(["algorithm", "thesis success", "ours success [95% CI]", "thesis variance", "our variance",
                "thesis mean reward", "our mean final return [95% CI]"], rows),
-        Bullets(lines or ["No configuration of this sweep has the thesis' mc_alpha (0 or 0.2) with finished runs."]),
+        Bullets(lines or ["No configuration of this sweep has the thesis' intrinsic_alpha (0 or 0.2) with finished runs."]),
         Heading(3, "The thesis' claims"),
         Paragraph(f"Each directional claim is decided by a one-sided exact rank-sum (Mann-Whitney) test on the final "
                   f"success rate at level {LEVEL}, declared before looking, with Holm's correction over the claims that "

@@ -4,7 +4,7 @@ SAC's critics estimate the soft Q-value Q(s, a) = E[r_0 + sum_{t >= 1} gamma^t (
 entropy coefficient and H_t the entropy of the policy at step t. Two facts bound it from above:
 
 - rewards are at most ``r_max`` (FetchPush's sparse reward is -1 or 0, so 0; SAC-MC mixes in an MC reward whose
-  range the config sets, so ``(1 - mc_alpha) r_max + mc_alpha mc_reward_high``);
+  range the config sets, so ``(1 - intrinsic_alpha) r_max + intrinsic_alpha intrinsic_reward_high``);
 - a tanh-squashed policy lives on the box [-1, 1]^d, where no density has more entropy than the uniform one:
   H <= d log 2 (d = the action dimension; FetchPush: 4 log 2 = 2.77 nats).
 
@@ -47,9 +47,9 @@ def reward_max(config: dict[str, Any]) -> float | None:
     if known is None:
         return None
     r = known[0]
-    a = float(config.get("mc_alpha") or 0.0)
+    a = float(config.get("intrinsic_alpha") or 0.0)
     if a > 0:
-        return (1 - a) * r + a * float(config.get("mc_reward_high", 0.0))
+        return (1 - a) * r + a * float(config.get("intrinsic_reward_high", 0.0))
     return r
 
 

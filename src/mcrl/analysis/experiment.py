@@ -29,10 +29,9 @@ import numpy as np
 from mcrl.analysis.grouping import arms
 from mcrl.analysis.runs import Run
 from mcrl.errors import MCRLError
+from mcrl.renames import new_names
 from mcrl.run.rundir import (CONFIG, EVAL, FINAL_EVAL, METRICS, PEER, PROVENANCE, RUNS, SWEEP_JSON, is_done,
                              read_columns, read_json)
-
-ALPHA_ALIAS = "intrinsic_alpha"  # mc_alpha's name in configs written after its rename to intrinsic_* keys
 
 
 @dataclass
@@ -50,14 +49,13 @@ class ConfigGroup:
                     self.settings.get(key))
 
     @property
-    def mc_alpha(self) -> float | None:
-        v = self._setting("mc_alpha")
-        v = self._setting(ALPHA_ALIAS) if v is None else v  # a config written under the key's newer name
+    def intrinsic_alpha(self) -> float | None:
+        v = self._setting("intrinsic_alpha")
         return None if v is None else float(v)
 
     @property
     def intrinsic(self) -> str:
-        """The intrinsic reward mc_alpha mixes in; "mc" where no run names one (configs older than the key)."""
+        """The intrinsic reward intrinsic_alpha mixes in; "mc" where no run names one (configs older than the key)."""
         return str(self._setting("intrinsic") or "mc")
 
     @property
@@ -101,11 +99,11 @@ def _read_run(rd: Path, name: str, config_key: str | None, seed: Any, overrides:
     final_eval = _read_json(rd / FINAL_EVAL)
     done = is_done(rd) or (peer is not None and bool(final_eval))
     status = "finished" if done else ("partial" if rd.is_dir() else "missing")
-    config = _read_json(rd / CONFIG)
+    config = new_names(_read_json(rd / CONFIG))  # files from before a rename: today's names from here on
     if seed is None and isinstance(config.get("seed"), int):
         seed = config["seed"]
     return Run(name=name, config_key=config_key, seed=seed, dir=rd, status=status, config=config,
-               overrides=overrides, eval=read_columns(rd / EVAL), metrics=read_columns(rd / METRICS),
+               overrides=new_names(overrides), eval=read_columns(rd / EVAL), metrics=read_columns(rd / METRICS),
                final_eval=final_eval, peer=peer, source=source)
 
 
@@ -201,5 +199,5 @@ def group_runs(runs: Sequence[Run]) -> list[ConfigGroup]:
     """The runs' configurations (:func:`mcrl.analysis.grouping.arms`): mcrl's SAC first, then increasing alpha
     (the order of the thesis' tables), then the reference arms."""
     groups = [ConfigGroup(*arm) for arm in arms(runs)]
-    groups.sort(key=lambda g: (g.peer is not None, g.mc_alpha is None, g.mc_alpha or 0.0, g.key))
+    groups.sort(key=lambda g: (g.peer is not None, g.intrinsic_alpha is None, g.intrinsic_alpha or 0.0, g.key))
     return groups

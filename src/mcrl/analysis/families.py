@@ -122,14 +122,14 @@ def candidates(exp: Experiment) -> list[Candidate]:
         if d is not None:
             out += [Candidate(x, y, "better", d, CODE_VARIANT if is_code_variant(x) else "SAC-MC alpha=0.2",
                               f"thesis, {THESIS_RESULTS[thesis or '']['tables']}")  # type: ignore[index]
-                    for x in mc if math.isclose(x.mc_alpha or 0.0, 0.2)]
+                    for x in mc if math.isclose(x.intrinsic_alpha or 0.0, 0.2)]
         else:  # no thesis numbers to test: the thesis' direction alone, at every alpha (no curve to follow either)
             out += [Candidate(x, y, "better", None, f"`{x.key}`", "the thesis' claim, on a task without its numbers")
                     for x in mc]
         out += [Candidate(x, y, "better", d, f"`{x.key}`", "issue 29: an exploration bonus's claim") for x in others]
         if y.peer is None:  # the thesis' alpha curve, against the SAC the thesis ran: mcrl's
             for x in mc:
-                a = next((a for a in curve if math.isclose(x.mc_alpha or 0.0, a)), None)
+                a = next((a for a in curve if math.isclose(x.intrinsic_alpha or 0.0, a)), None)
                 if a is not None and not is_code_variant(x):
                     kind = curve[a]["claim"]
                     out.append(Candidate(x, y, kind, margin if kind == "same" else d, f"SAC-MC alpha={a:g}",

@@ -57,18 +57,18 @@ def same_value(a: Any, b: Any) -> bool:
 
 
 def _varying(settings: Sequence[dict[str, Any]]) -> list[str]:
-    """Keys whose value differs between the settings (mc_alpha first, then alphabetical)."""
+    """Keys whose value differs between the settings (intrinsic_alpha first, then alphabetical)."""
     def value(s: dict[str, Any], k: str) -> str:
         return json.dumps(s[k], sort_keys=True, default=str) if k in s else "<unset>"
 
     keys = {k for s in settings for k in s}
     vary = {k for k in keys if len({value(s, k) for s in settings}) > 1}
-    return sorted(vary, key=lambda k: (k != "mc_alpha", k))
+    return sorted(vary, key=lambda k: (k != "intrinsic_alpha", k))
 
 
 def _algorithm(settings: dict[str, Any]) -> str:
     """'SAC', 'SAC-MC 0.2', 'SAC+RND 0.2': the algorithm of settings that differ from others only in the reward."""
-    alpha, reward = float(settings.get("mc_alpha") or 0.0), str(settings.get("intrinsic") or "mc")
+    alpha, reward = float(settings.get("intrinsic_alpha") or 0.0), str(settings.get("intrinsic") or "mc")
     name = {"mc": "-MC", "rnd": "+RND", "icm": "+ICM"}.get(reward, f"+{reward.capitalize()}")
     return "SAC" if alpha == 0.0 else f"SAC{name} {alpha:g}"
 
@@ -78,7 +78,7 @@ def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str
     version), whatever their sweep labels say. Labels are the user's (``--with DIR=LABEL``) where given; else
     sweep.json's config keys when they name the groups one-to-one and come from one sweep (another sweep's
     "fetchpush-sacmc-0.2" may mean something else); else the differing settings, e.g.
-    ``mc_alpha=0.2, mc_reduction=batch``."""
+    ``intrinsic_alpha=0.2, mc_reduction=batch``."""
     buckets: dict[tuple[str, str, str], list[Run]] = {}  # (family, settings, user label) -> runs
     settings: dict[tuple[str, str, str], dict[str, Any]] = {}
     unstarted: list[Run] = []
@@ -131,7 +131,7 @@ def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str
                 for user in dict.fromkeys(k[2] for k in keys)}
         for k, sk in zip(keys, sweep_keys):
             parts = ", ".join(f"{v}={_fmt(settings[k].get(v))}" for v in vary[k[2]]) if k in settings else ""
-            if k in settings and not fam and set(vary[k[2]]) <= {"mc_alpha", "intrinsic"}:
+            if k in settings and not fam and set(vary[k[2]]) <= {"intrinsic_alpha", "intrinsic"}:
                 parts = _algorithm(settings[k])  # only the reward differs: name the algorithm
             user = k[2]
             if user:  # the user's name; the settings too when one directory holds several configurations

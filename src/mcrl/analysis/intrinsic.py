@@ -1,7 +1,7 @@
 """Arms with another intrinsic reward (RND, ICM, Disagreement) against SAC and against SAC-MC, with verdicts that
 keep their error rate (the rules of :mod:`mcrl.analysis.claims`).
 
-Each arm X whose ``intrinsic`` is not ``mc`` (at ``mc_alpha > 0``) is compared on the final success rate with:
+Each arm X whose ``intrinsic`` is not ``mc`` (at ``intrinsic_alpha > 0``) is compared on the final success rate with:
 
 - every SAC arm Y (mcrl's, and any reference SAC): "X reaches a higher final success rate than SAC" is the claim an
   exploration bonus makes, so it is tested one-sided (exact rank-sum): **better than SAC** when significant;
@@ -72,7 +72,7 @@ def intrinsic_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
     sacs = [*sac, *reference_sac(exp)]
     d = effect_of_interest(exp)
     out: list[Block] = [Heading(2, "Other intrinsic rewards against SAC and SAC-MC")]
-    missing = [what for what, have in (("SAC (mc_alpha = 0)", sacs), ("SAC-MC (intrinsic=mc)", mc)) if not have]
+    missing = [what for what, have in (("SAC (intrinsic_alpha = 0)", sacs), ("SAC-MC (intrinsic=mc)", mc)) if not have]
     d_text = (f"d = {d:+.2f}, the thesis' gain of SAC-MC over SAC on this task" if d is not None
               else "no effect of interest is known for this task, so no 'short of' verdict and no power")
     out.append(Paragraph(

@@ -19,6 +19,7 @@ from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from mcrl.analysis.stats import DEFAULT_N_BOOT, MIN_SEEDS_FOR_VERDICT, mean_ci_band
 from mcrl.errors import MCRLError
+from mcrl.renames import new_names
 from mcrl.run.rundir import CONFIG, EVAL, METRICS, is_done, read_columns, read_json
 
 COLORS = [f"C{i}" for i in range(10)]
@@ -106,7 +107,7 @@ _RUN_PANELS: list[tuple[str, str, list[tuple[str, str]], str, bool]] = [
     ("entropy coefficient", "alpha (entropy)", [("ent_coef", "ent_coef")], "metrics", True),
     ("MC model losses (NLL)", "loss", [("transition_model_loss", "p(s'|s,a)"),
                                        ("action_model_loss", "p(s'|a)")], "metrics", False),
-    ("mean MC reward (replay batches)", "reward", [("mean_mc_reward", "MC reward")], "metrics", False),
+    ("mean MC reward (replay batches)", "reward", [("mean_intrinsic_reward", "MC reward")], "metrics", False),
     ("raw KL (MC)", "nats", [("mean_raw_kl", "raw KL")], "metrics", False),
 ]
 
@@ -127,7 +128,7 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
         raise MCRLError(f"{run} has no eval.csv or metrics.csv rows yet: wait for the run's first log "
                         "interval, or pass a run directory written by `mcrl train`")
 
-    cfg = read_json(run / CONFIG)  # {} when unreadable: a plot must not fail on it
+    cfg = new_names(read_json(run / CONFIG))  # {} when unreadable: a plot must not fail on it
     moving = cfg.get("intrinsic_schedule", "constant") != "constant"  # a constant weight is a flat line: left out
     panels = []
     for title, ylabel, cols, source, logy in _RUN_PANELS:
@@ -144,7 +145,7 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
             panels.append((title, ylabel, series, logy))
 
     fig, axes = panel_grid(len(panels))
-    fig.suptitle(f"{run.name}  ({cfg.get('preset', '?')}, mc_alpha={cfg.get('mc_alpha', '?')}, "
+    fig.suptitle(f"{run.name}  ({cfg.get('preset', '?')}, intrinsic_alpha={cfg.get('intrinsic_alpha', '?')}, "
                  f"seed={cfg.get('seed', '?')}){'' if is_done(run) else '  [unfinished]'}",
                  fontsize=11)
     for ax, (title, ylabel, series, logy) in zip(axes, panels):

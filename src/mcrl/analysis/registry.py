@@ -5,7 +5,7 @@ prints it, whichever of the family's arms that report holds (issue 49).
 Format (YAML, ``claims.yaml``; directories relative to the file)::
 
     arms:                               # named arms: the runs of a directory, optionally selected by settings
-      mcrl SAC: {dir: reproduction/fetchpush/main, select: {mc_alpha: 0}}
+      mcrl SAC: {dir: reproduction/fetchpush/main, select: {intrinsic_alpha: 0}}
       SB3 SAC: {dir: reproduction/fetchpush/sb3-sac}
       SAC pooled: {pool: [mcrl SAC, SB3 SAC]}      # the seeds of several arms as one arm
     families:
@@ -37,10 +37,11 @@ from typing import Any
 import yaml
 
 from mcrl.analysis.claims import KINDS
-from mcrl.analysis.experiment import ALPHA_ALIAS, read_runs
+from mcrl.analysis.experiment import read_runs
 from mcrl.analysis.grouping import arms, run_settings, same_value
 from mcrl.analysis.runs import Run
 from mcrl.errors import MCRLError
+from mcrl.renames import new_names
 
 REGISTRY = "claims.yaml"
 ENV = "MCRL_CLAIMS"
@@ -54,7 +55,7 @@ class ArmSpec:
     sources: tuple[tuple[Path, tuple[tuple[str, Any], ...]], ...]
 
     def where(self, root: Path) -> str:
-        """'reproduction/fetchpush/main (mc_alpha=0)' for each source, relative to ``root`` where possible."""
+        """'reproduction/fetchpush/main (intrinsic_alpha=0)' for each source, relative to ``root`` where possible."""
         def one(d: Path, sel: tuple[tuple[str, Any], ...]) -> str:
             try:
                 d = d.relative_to(root)
@@ -144,6 +145,10 @@ def _arm(spec: Any, named: dict[str, Any], path: Path, seen: tuple[str, ...] = (
     select = spec.get("select") or {}
     if not isinstance(select, dict):
         raise _fail(path, f"arm {spec['name']!r}: 'select' must map config keys to values")
+    try:
+        select = new_names(select)  # a registry written before a rename: today's names
+    except MCRLError as e:
+        raise _fail(path, f"arm {spec['name']!r}: {e}") from None
     return ArmSpec(str(spec["name"]), (((path.parent / str(spec["dir"])).resolve(), tuple(sorted(select.items()))),))
 
 
@@ -203,17 +208,11 @@ def load_registry(path: str | Path) -> Registry:
 
 
 def _selected(r: Run, select: tuple[tuple[str, Any], ...]) -> bool:
-    """Whether a started run has the selected settings: its config.json's value of each key (mc_alpha also under
-    its newer name), else the default."""
+    """Whether a started run has the selected settings: its config.json's value of each key, else the default."""
     settings = run_settings(r.config)
     if settings is None:
         return False
-    def value(k: str) -> Any:
-        for key in (k, ALPHA_ALIAS) if k == "mc_alpha" else (k,):
-            if key in r.config:
-                return r.config[key]
-        return settings.get(k, settings.get(ALPHA_ALIAS) if k == "mc_alpha" else None)
-    return all(same_value(value(k), v) for k, v in select)
+    return all(same_value(r.config[k] if k in r.config else settings.get(k), v) for k, v in select)
 
 
 class ArmRuns:

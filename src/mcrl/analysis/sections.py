@@ -128,7 +128,7 @@ def _final_table(exp: Experiment) -> list[Block]:
         ms, cs = mean_ci(s)
         mm, cm = mean_ci(m)
         budgets = sorted({r.total_steps for r in g.finished if r.total_steps is not None})
-        rows.append([name(g), num(g.mc_alpha, 2), f"{s.size} / {len(g.runs)}",
+        rows.append([name(g), num(g.intrinsic_alpha, 2), f"{s.size} / {len(g.runs)}",
                      ", ".join(map(steps, budgets)) or steps(g.total_steps),  # none finished: the configured budget
                      mean_cell(ms, cs, s.size, 3), num(sample_var(s), 4), mean_cell(mm, cm, m.size, 2),
                      _source(g.finished)])
@@ -139,7 +139,7 @@ def _final_table(exp: Experiment) -> list[Block]:
               "final_eval.json (the evaluation at the end of training, with final_eval_episodes episodes) when it "
               "has one, else from the last row of its eval.csv; the last column says which, and over how many "
               "episodes."),
-        Table(["configuration", "mc_alpha", "seeds finished", "total_steps", "mean success [95% CI]",
+        Table(["configuration", "intrinsic_alpha", "seeds finished", "total_steps", "mean success [95% CI]",
                    "variance of success", "mean final return [95% CI]", "final numbers from"], rows),
     ]
 
@@ -193,7 +193,7 @@ def _robust_stats(exp: Experiment) -> list[Block]:
     ]
     sac, mc = sac_and_mc(exp)
     if not sac or not mc:
-        missing = "no finished SAC configuration (mc_alpha = 0)" if not sac else "no finished SAC-MC configuration (mc_alpha > 0)"
+        missing = "no finished SAC configuration (intrinsic_alpha = 0)" if not sac else "no finished SAC-MC configuration (intrinsic_alpha > 0)"
         out.append(Paragraph(f"Probability of improvement of SAC-MC over SAC: not computed, the sweep has {missing}."))
     pairs = _comparisons(exp)
     if not pairs:
@@ -246,7 +246,7 @@ def _detectable(exp: Experiment, claims: ReportClaims | None = None) -> list[Blo
     out: list[Block] = [Heading(2, "How large a difference can these seeds detect")]
     pairs = _comparisons(exp)
     if not pairs:
-        return out + [Paragraph("Not computed: no finished SAC configuration (mc_alpha = 0) and another finished "
+        return out + [Paragraph("Not computed: no finished SAC configuration (intrinsic_alpha = 0) and another finished "
                             "configuration to compare it with.")]
     rows = []
     for x, y in pairs:
@@ -284,12 +284,12 @@ def _detectable(exp: Experiment, claims: ReportClaims | None = None) -> list[Blo
 
 def _mc_section(exp: Experiment) -> list[Block]:
     out: list[Block] = [Heading(2, "MC reward and raw KL during training")]
-    groups = [g for g in exp.configs if any(has_data(r.metrics, "mean_mc_reward") for r in g.runs)]
+    groups = [g for g in exp.configs if any(has_data(r.metrics, "mean_intrinsic_reward") for r in g.runs)]
     if not groups:
-        return out + [Paragraph("No run has MC reward data (metrics.csv `mean_mc_reward` is empty: no MC models).")]
+        return out + [Paragraph("No run has MC reward data (metrics.csv `mean_intrinsic_reward` is empty: no MC models).")]
     colors = _colors(exp)
     fig, axes = panel_grid(2)
-    cols = ("mean_mc_reward", "mean_raw_kl")
+    cols = ("mean_intrinsic_reward", "mean_raw_kl")
     for ax, col, title, ylabel in zip(axes, cols, ("mean MC reward (normalised)", "mean raw KL"), ("reward", "nats")):
         series = [(g.key, r.metrics) for g in groups for r in g.runs if has_data(r.metrics, col)]
         grid, by_cfg = _curves_by_config(series, col)
@@ -300,7 +300,7 @@ def _mc_section(exp: Experiment) -> list[Block]:
         v = [r.metrics[col][np.isfinite(r.metrics[col])][-1] for r in g.runs if has_data(r.metrics, col)]
         return float(np.mean(v)) if v else None
 
-    rows = [[name(g), num(g.mc_alpha, 2), g.intrinsic, num(last_mean(g, cols[0]), 4),
+    rows = [[name(g), num(g.intrinsic_alpha, 2), g.intrinsic, num(last_mean(g, cols[0]), 4),
              num(last_mean(g, cols[1] if g.intrinsic == "mc" else "mean_raw_intrinsic"), 4)] for g in groups]
     return out + [
         Paragraph("The MC reward added to the replay batches and the raw per-transition KL (nats) it is normalised "
@@ -311,7 +311,7 @@ def _mc_section(exp: Experiment) -> list[Block]:
               "(RND, ICM, Disagreement) logs its normalised reward in the same column and its own raw value "
               "(docs/intrinsic.md): prediction error or ensemble variance, not a KL."),
         Figure("mc_reward_kl.png", figure_to_png(fig), "MC reward and raw KL from metrics.csv."),
-        Table(["configuration", "mc_alpha", "intrinsic", "last mean intrinsic reward (mean over seeds)",
+        Table(["configuration", "intrinsic_alpha", "intrinsic", "last mean intrinsic reward (mean over seeds)",
                "last mean raw KL (nats) or raw intrinsic value"], rows),
     ]
 

@@ -152,7 +152,7 @@ def _learn_rates(exp, plan: Plan) -> list[Block]:
     from mcrl.analysis.hypothesis import fisher_exact
 
     rows, groups = [], [g for g in exp.configs if g.finished]
-    base = next((g for g in groups if g.peer is None and (g.mc_alpha or 0) == 0), None)
+    base = next((g for g in groups if g.peer is None and (g.intrinsic_alpha or 0) == 0), None)
     if base is None:
         return []
     b = base.finals()[0]

@@ -23,14 +23,11 @@ from typing import Any, Callable
 import numpy as np
 
 from mcrl.errors import MCRLError
+from mcrl.renames import new_path
 from mcrl.run import rundir
 
 _COMPLETE = ("state.npz", "meta.json")  # a checkpoint directory without these is not usable
 _OLD_FORMAT = (".actor", ".norm.")  # keys of checkpoints by mcrl 0.1 and commit 83e6d8d (flat layout)
-# state.npz keys renamed in issue 52 (old prefix -> new), read as the new ones: MC's models took the one slot of
-# every intrinsic reward, and the normalised reward's metric its generic name
-RENAMED_KEYS = ((".mc_models.", ".intrinsic."),
-                (".metric_sums['mean_mc_reward']", ".metric_sums['mean_intrinsic_reward']"))
 
 
 def flatten(tree) -> dict[str, np.ndarray]:
@@ -138,20 +135,13 @@ def load_meta(ckpt: Path) -> dict[str, Any]:
                         "is corrupt; delete it to fall back to an older one") from None
 
 
-def _renamed(key: str) -> str:
-    for old, new in RENAMED_KEYS:
-        if key.startswith(old):
-            return new + key[len(old):]
-    return key
-
-
 def restore_state(ckpt: Path, template, optional=None):
     """(template, optional) filled with the checkpoint's arrays, each a freshly initialised pytree of the run's
     config: every leaf of `template` must be there; a leaf of `optional` that is not keeps its initial value. Keys
-    from before a rename (`RENAMED_KEYS`) are read under their new names."""
+    from before a rename are read under today's names (`mcrl.renames.new_path`)."""
     import jax
 
-    arrays = {_renamed(k): v for k, v in _load_npz(ckpt / "state.npz").items()}
+    arrays = {new_path(k): v for k, v in _load_npz(ckpt / "state.npz").items()}
     if any(k.startswith(_OLD_FORMAT) for k in arrays):
         raise MCRLError(f"checkpoint {ckpt} was written by an older mcrl (0.1 or commit 83e6d8d): convert it with "
                         "`python scripts/migrate_checkpoint.py RUN_DIR` (docs/run-directory.md)")

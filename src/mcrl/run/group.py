@@ -42,7 +42,7 @@ PER_RUN_KEYS = ("seed", "intrinsic_alpha", "intrinsic_models", "learning_rate", 
 
 def group_key(cfg: Config) -> str:
     """Runs with equal keys can train as one group."""
-    d = cfg.fields()
+    d = cfg.to_dict()
     for k in PER_RUN_KEYS:
         d.pop(k)
     return json.dumps(d, sort_keys=True, default=str)

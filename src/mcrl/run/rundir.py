@@ -30,9 +30,10 @@ from typing import Any
 
 import numpy as np
 
-from mcrl.algo.metrics import BOUNDS, RENAMED_COLUMNS, UPDATE_METRICS
+from mcrl.algo.metrics import BOUNDS, UPDATE_METRICS
 from mcrl.config import PRESETS, Config, resolve_config
 from mcrl.errors import MCRLError
+from mcrl.renames import new_names
 
 CONFIG = "config.json"
 METRICS = "metrics.csv"
@@ -121,30 +122,19 @@ def _number(cell: str | None) -> float | None:
         return None
 
 
-def _both_names(row: dict) -> dict:
-    """`row` with each renamed column (`RENAMED_COLUMNS`) under its old and its new name, whichever the file has:
-    readers of older runs and of newer ones see the same keys."""
-    for old, new in RENAMED_COLUMNS.items():
-        if new in row:
-            row.setdefault(old, row[new])
-        elif old in row:
-            row[new] = row[old]
-    return row
-
-
 def read_rows(path: str | Path) -> list[dict[str, float | None]]:
-    """Rows of a run's CSV as dicts of floats (None for empty cells), a renamed column under both its names; []
-    for a missing file."""
+    """Rows of a run's CSV as dicts of floats (None for empty cells), columns in today's names
+    (`mcrl.renames`); [] for a missing file."""
     p = Path(path)
     if not p.is_file():
         return []
     with p.open(newline="") as f:
-        return [_both_names({k: _number(v) for k, v in r.items() if k is not None}) for r in csv.DictReader(f)]
+        return [new_names({k: _number(v) for k, v in r.items() if k is not None}) for r in csv.DictReader(f)]
 
 
 def read_columns(path: str | Path) -> dict[str, np.ndarray]:
-    """Columns of a run's CSV as float arrays, NaN for empty cells, a renamed column under both its names; {} for
-    a missing or empty file."""
+    """Columns of a run's CSV as float arrays, NaN for empty cells, in today's names (`mcrl.renames`); {} for a
+    missing or empty file."""
     rows = read_rows(path)
     p = Path(path)
     if not rows:
@@ -152,7 +142,7 @@ def read_columns(path: str | Path) -> dict[str, np.ndarray]:
             return {}
         with p.open(newline="") as f:
             header = next(csv.reader(f), None)
-        return _both_names({h.strip(): np.zeros(0) for h in header}) if header else {}
+        return new_names({h.strip(): np.zeros(0) for h in header}) if header else {}
     return {k.strip(): np.array([math.nan if r.get(k) is None else r[k] for r in rows], dtype=float)
             for k in rows[0]}
 
@@ -172,7 +162,7 @@ def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
     the file is replaced atomically, so a failure here leaves it as it was."""
     if not path.exists():
         return
-    rows = [{RENAMED_COLUMNS.get(k, k): v for k, v in r.items()}  # a run from before a rename: the new names
+    rows = [new_names(r)  # a run from before a rename: today's names
             for r in _whole_rows(path) if _number(r.get("step")) is not None and _number(r["step"]) <= max_step]
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "w", newline="") as f:

@@ -19,7 +19,8 @@ import uuid
 from pathlib import Path
 from typing import Callable
 
-from mcrl.config import canonical, resolve_config, stored
+from mcrl.config import resolve_config
+from mcrl.renames import new_names
 from mcrl.errors import MCRLError
 from mcrl.run import lock as locks
 from mcrl.run import stop
@@ -78,8 +79,8 @@ def merged_grid_and_set(old: dict | None, plan: SweepPlan) -> tuple[dict, dict]:
     ``grid`` lists every value each key took across the merged sweeps; a ``set`` key stays fixed only where both
     fix it to the same value, otherwise it joins the grid (a side that left it unset ran the preset's default).
     The ``runs`` list stays the record of each run's own overrides."""
-    def as_stored(d: dict) -> dict:  # either key name in, the stored one out (mcrl.config.STORED_AS)
-        return jsonable(stored(canonical(dict(d))))
+    def as_stored(d: dict) -> dict:  # a sweep.json from before a rename: today's names (mcrl.renames)
+        return jsonable(new_names(d))
 
     new_grid, new_set = as_stored(plan.grid), as_stored(plan.fixed)
     if old is None:

@@ -16,16 +16,17 @@ from typing import Any
 
 import yaml
 
-from mcrl.config import RENAMED, Config, canonical, resolve_config, stored
+from mcrl.config import Config, resolve_config
+from mcrl.renames import new_names, old_name
 from mcrl.errors import MCRLError
 from mcrl.run.rundir import SWEEP_JSON
 from mcrl.run.rundir import label_value as _fmt  # run names and labels write values as `mcrl train`'s names do
 
 SWEEP_FILE_KEYS = ("preset", "grid", "set", "seeds")
-# Short names in configuration labels and run names. A renamed key keeps the name it had in labels and run names
-# (`a0.2-s3`, `alpha=0.2`, `mc_lr=0.001`), so a sweep given again into a committed experiment names its runs as
-# before and resumes them.
-_LABEL = {**{new: old for old, new in RENAMED.items()}, "intrinsic_alpha": "alpha"}
+# Short names in configuration labels and run names (`a0.2-s3`, `alpha=0.2`). A renamed key keeps the name it had
+# in them (`mcrl.renames.old_name`), so a sweep given again into a committed experiment names its runs as before
+# and resumes them.
+_LABEL = {"intrinsic_alpha": "alpha"}
 _NAME_PREFIX = {"intrinsic_alpha": "a"}
 
 
@@ -38,9 +39,9 @@ class RunPlan:
     config: Config
 
     def entry(self) -> dict[str, Any]:
-        """This run's line in sweep.json (its keys as files store them, `mcrl.config.STORED_AS`)."""
+        """This run's line in sweep.json."""
         return {"name": self.name, "config_key": self.config_key, "seed": self.seed,
-                "overrides": jsonable(stored(self.overrides))}
+                "overrides": jsonable(self.overrides)}
 
 
 @dataclass
@@ -107,11 +108,11 @@ def parse_seeds(value: Any) -> list[int]:
 def build_plan(preset: str | None, grid: dict[str, list], fixed: dict[str, Any] | None = None,
                source: str = "args") -> SweepPlan:
     """Expand the grid (seeds outermost, so a partial sweep has every configuration's first seeds) and
-    validate every point with ``resolve_config``. Old key names (`mcrl.config.RENAMED`) are read as the new ones."""
+    validate every point with ``resolve_config``. Old key names (`mcrl.renames`) are read as today's."""
     if not isinstance(grid, dict) or not grid:
         raise MCRLError("the sweep's grid is empty: give at least one key with a list of values, e.g. "
                         "grid: {intrinsic_alpha: [0, 0.2]} or --alphas 0,0.2")
-    grid, fixed = canonical(grid), canonical(dict(fixed or {}))
+    grid, fixed = new_names(grid), new_names(dict(fixed or {}))
     for k, vals in grid.items():
         if not isinstance(vals, list) or not vals:
             raise MCRLError(f"grid key {k!r} has {vals!r}: give a non-empty list of values, e.g. {k}: [a, b] "
@@ -141,10 +142,10 @@ def build_plan(preset: str | None, grid: dict[str, list], fixed: dict[str, Any] 
                 cfg = resolve_config(preset, overrides)
             except MCRLError as e:
                 raise MCRLError(f"grid point {label}: {e}") from None
-            key_parts = [f"{_LABEL.get(k, k)}={_fmt(getattr(cfg, k))}" for k in keys]
+            key_parts = [f"{_LABEL.get(k, old_name(k))}={_fmt(getattr(cfg, k))}" for k in keys]
             config_key = ",".join(key_parts) or (preset or cfg.env_id)
             name_parts = [f"{_NAME_PREFIX[k]}{_fmt(getattr(cfg, k))}" if k in _NAME_PREFIX
-                          else f"{_LABEL.get(k, k)}={_fmt(getattr(cfg, k))}" for k in keys]
+                          else f"{_LABEL.get(k, old_name(k))}={_fmt(getattr(cfg, k))}" for k in keys]
             name = safe_name("-".join(name_parts + [f"s{cfg.seed}"]))
             ident = cfg.to_json()
             if ident in seen_cfg:
