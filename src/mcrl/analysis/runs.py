@@ -9,13 +9,13 @@ from typing import Any, Literal
 import numpy as np
 
 from mcrl.analysis.plots import has_data
+from mcrl.files import number
 
 
 def _number(v: Any) -> float | None:
-    """A JSON number as float; None for null, strings, booleans and non-finite values."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        return None
-    return float(v)
+    """A finite number of final_eval.json as float (`mcrl.files.number`); None for null, booleans, non-numbers
+    and non-finite values."""
+    return number(v, finite=True)
 
 
 @dataclass

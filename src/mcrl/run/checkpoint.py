@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+import mcrl.files as files
 from mcrl.errors import MCRLError
 from mcrl.renames import new_path
 from mcrl.run import rundir
@@ -36,14 +37,6 @@ def flatten(tree) -> dict[str, np.ndarray]:
 
     return {jax.tree_util.keystr(path): np.asarray(leaf)
             for path, leaf in jax.tree_util.tree_flatten_with_path(jax.device_get(tree))[0]}
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def install(run_dir: Path, step: int, write: Callable[[Path], None], keep: int) -> Path:
@@ -61,7 +54,7 @@ def install(run_dir: Path, step: int, write: Callable[[Path], None], keep: int) 
         for p in tmp.iterdir():
             with open(p, "rb+") as f:
                 os.fsync(f.fileno())
-        _fsync_dir(tmp)
+        files.fsync_dir(tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # a full disk gets its space back; `latest` still names the last
         raise
@@ -74,7 +67,7 @@ def install(run_dir: Path, step: int, write: Callable[[Path], None], keep: int) 
     else:
         os.rename(tmp, final)
     rundir.write_latest(run_dir, final.name)
-    _fsync_dir(ckpt_root)
+    files.fsync_dir(ckpt_root)
     for old in sorted(ckpt_root.glob("step_*"))[:-max(1, keep)]:
         shutil.rmtree(old, ignore_errors=True)
     return final
@@ -90,7 +83,7 @@ def save(run_dir: Path, step: int, arrays: dict[str, np.ndarray], meta: dict[str
             np.savez(d / f"{name}.npz", **more)
         if buffer_arrays is not None:
             np.savez(d / "buffer.npz", **buffer_arrays)
-        (d / "meta.json").write_text(json.dumps({**meta, "step": step, "has_buffer": buffer_arrays is not None}))
+        files.write_json(d / "meta.json", {**meta, "step": step, "has_buffer": buffer_arrays is not None})
 
     return install(run_dir, step, write, keep)
 

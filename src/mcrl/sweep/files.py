@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 
 from mcrl.errors import MCRLError
+from mcrl.files import write_atomic
 from mcrl.run import checkpoint, rundir
 
 RUNS = rundir.RUNS
@@ -102,9 +103,7 @@ def write_run_files(run_dir: Path, files: dict[str, bytes], keep: int) -> None:
         if ".." in Path(rel).parts or Path(rel).is_absolute():
             raise MCRLError(f"a worker sent a file outside its run directory ({rel!r})")
         target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(f".{target.name}.part")
-        tmp.write_bytes(data)
-        os.replace(tmp, target)
+        write_atomic(target, data)
     if step is not None and (rundir.checkpoint_root(run_dir) / ck_name).is_dir():
         rundir.write_latest(run_dir, ck_name)  # sent before: installed already
     elif step is not None:
@@ -117,4 +116,4 @@ def write_run_files(run_dir: Path, files: dict[str, bytes], keep: int) -> None:
 
         checkpoint.install(run_dir, step, write, keep)
     if rundir.DONE in files:  # last: a run with `done` is finished, whoever reads it
-        (run_dir / rundir.DONE).write_bytes(files[rundir.DONE])
+        write_atomic(run_dir / rundir.DONE, files[rundir.DONE])

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mcrl.errors import MCRLError
+from mcrl.files import write_json
 from mcrl.run.rundir import PROVENANCE
 
 SWEEPS = "sweeps"  # the key of the list of sweep calls
@@ -92,10 +93,7 @@ def read(exp: Path) -> dict[str, Any]:
 
 
 def _write(exp: Path, doc: dict[str, Any]) -> None:
-    path = exp / PROVENANCE
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(doc, indent=1) + "\n")  # indent 1: as the committed experiments' files
-    os.replace(tmp, path)
+    write_json(exp / PROVENANCE, doc, indent=1, newline=True)  # indent 1: as the committed experiments' files
 
 
 def start(exp: Path, command: str) -> int:
