@@ -223,7 +223,7 @@ def test_vmap_backend_shares_runs_among_workers(tmp_path):
     plan = plan_from_args("fetchreach-sacmc", alphas="0,0.2", seeds=3)
 
     def jobs(workers, group_size=None):
-        backend = VmapBackend(Settings(tmp_path, "id", workers, 1, {}, group_size=group_size))
+        backend = VmapBackend(Settings(tmp_path, "id", workers, 1, {}, options={"group_size": group_size}))
         return [[r.name for r in j] for j in backend.jobs(plan.runs)]
 
     seen = [jobs(2), jobs(1, group_size=4)]

@@ -188,11 +188,10 @@ def cmd_sweep(args) -> int:
         return 0
     try:
         res = sweep.run_sweep(plan, args.exp, backend=args.backend, workers=args.workers,
-                              threads_per_run=args.threads_per_run, address=args.address,
-                              gpus_per_run=args.gpus_per_run, tracking=args.tracking,
+                              threads_per_run=args.threads_per_run, tracking=args.tracking,
                               tracking_uri=args.tracking_uri, retries=args.retries,
-                              progress=not args.no_progress, group_size=args.group_size,
-                              env_workers=args.env_workers, command=shlex.join(["mcrl", *args.argv]))
+                              progress=not args.no_progress, command=shlex.join(["mcrl", *args.argv]),
+                              **sweep.backend.given_options(args))
     except KeyboardInterrupt:  # a second signal: the runs were killed, each keeps its last checkpoint
         print("mcrl: sweep interrupted; the same command (with --exp) resumes it from the runs' last checkpoints",
               file=sys.stderr)
@@ -222,6 +221,7 @@ def cmd_sweep(args) -> int:
 def cmd_decide(args) -> int:
     from mcrl.decide import runner
     from mcrl.decide.plan import load_plan
+    from mcrl.sweep.backend import given_options
 
     plan = load_plan(args.plan)
     if args.dry_run:
@@ -231,8 +231,7 @@ def cmd_decide(args) -> int:
         print(runner.summary_line(runner.look(plan, runner.check_commit(plan, args.any_commit))))
         return 0
     options = dict(backend=args.backend, workers=args.workers, threads_per_run=args.threads_per_run,
-                   address=args.address, retries=args.retries, progress=not args.no_progress,
-                   group_size=args.group_size, env_workers=args.env_workers)
+                   retries=args.retries, progress=not args.no_progress, **given_options(args))
     try:
         st = runner.decide(plan.path, once=args.once, any_commit=args.any_commit, **options)
     except runner.SweepIncomplete as e:

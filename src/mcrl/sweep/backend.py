@@ -8,12 +8,19 @@ jobs and reports what became of them:
     backend.launch(job) -> where | None          start a job; where it runs ("pid 123"), or None until it starts
     backend.poll(timeout) -> [Started | Ended]   what happened since the last call, waiting up to `timeout` s
     backend.request_stop()                       every running run saves at its episode's end and stops
-    backend.close(kill)                          release everything; `kill`: end the running jobs at once
+    backend.close(kill)                          the end: with `kill` False (a stop) every running run saves at
+                                                 its episode's end and is waited for; with `kill` True the running
+                                                 jobs end at once (each run keeps its last periodic checkpoint);
+                                                 then everything is released. Its one caller is `run_sweep`, once
 
-`slots` says how many jobs may run at a time. A backend is built from the sweep's `Settings` after
-`check(settings)` (which writes nothing) has passed. Adding one: a class with these, and one line in `_REGISTRY`.
-This module imports neither jax nor ray (a local worker pins its cores before jax loads; Ray reads its auth
-settings on import).
+`slots` says how many jobs may run at a time. A job's end is an `Ended` holding its worker's `Outcome`, the one
+encoding of a job's end on every backend. A backend's own options (`--address`, `--group-size`) are its `OPTIONS`
+(name -> default): `options_for` refuses another backend's with a one-line error naming the fix and hands the
+given ones to the backend's `check_options`. A backend is built from the sweep's `Settings` (its options in
+`Settings.options`) after `check(settings)` (which writes nothing) has passed. Adding one: a class with these,
+and one line in `_REGISTRY`; adding an option: an `OPTIONS` entry checked in `check_options`, and its flag in
+`mcrl.cli`. This module imports neither jax nor ray (a local worker pins its cores before jax loads; Ray reads
+its auth settings on import).
 """
 from __future__ import annotations
 
@@ -23,9 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
+from mcrl.errors import MCRLError
 from mcrl.sweep.plan import RunPlan
 
-__all__ = ["Backend", "Ended", "Job", "Settings", "Started", "get", "names", "options_of"]
+__all__ = ["Backend", "Ended", "Job", "Outcome", "Settings", "Started", "get", "given_options", "names",
+           "option_names", "options_for"]
 
 _ids = itertools.count()
 
@@ -41,10 +50,7 @@ class Settings:
     env: dict[str, str]  # environment variables of every worker process (`mcrl.sweep.worker.thread_env`)
     workers_given: bool = False  # --workers was given (not the default)
     pin: bool = False  # pin each job's process to `threads` cores (--threads-per-run; `worker.pin_cores`)
-    address: str | None = None  # ray
-    gpus_per_run: float = 0.0  # ray
-    group_size: int | None = None  # vmap
-    env_workers: int = 0  # vmap
+    options: dict[str, Any] = field(default_factory=dict)  # the backend's own options (`options_for`)
 
 
 @dataclass
@@ -72,13 +78,14 @@ class Started:
     where: str  # e.g. "pid 123 on host-1, files shipped back"
 
 
-@dataclass
-class Ended:
-    """A job ended: `status` is "ok" (`results`: run name -> its `done` summary), "stopped" (`results`: run name ->
-    the step of the checkpoint it saved, or None), "locked" (`holder`: who writes the runs `results` names),
-    "error" (`why`, `traceback`: the run itself failed) or "died" (`why`: the worker process died; retried)."""
+@dataclass(frozen=True)
+class Outcome:
+    """How a job ended, the same on every backend (what a local worker sends through its pipe, what a Ray task
+    returns): `status` is "ok" (`results`: run name -> its `done` summary), "stopped" (`results`: run name -> the
+    step of the checkpoint it saved, or None), "locked" (`holder`: who writes the runs `results` names), "error"
+    (`why`, `traceback`: the run itself failed) or "died" (`why`: the worker process died, as its backend saw;
+    retried). `mcrl.sweep.worker.outcome_of` makes a worker's from what its runs raised."""
 
-    job: Job
     status: str
     results: dict[str, Any] = field(default_factory=dict)
     why: str = ""
@@ -86,12 +93,24 @@ class Ended:
     holder: str = ""
 
 
+@dataclass
+class Ended:
+    """A job ended, with its `outcome`."""
+
+    job: Job
+    outcome: Outcome
+
+
 class Backend(Protocol):
     name: ClassVar[str]
+    OPTIONS: ClassVar[dict[str, Any]]  # its own options and their defaults (`options_for`)
     slots: int  # jobs at a time
 
     @classmethod
     def default_workers(cls, cores: int) -> int: ...
+
+    @classmethod
+    def check_options(cls, options: dict[str, Any]) -> None: ...  # its own options' values; MCRLError naming the fix
 
     @classmethod
     def check(cls, settings: Settings) -> None: ...
@@ -113,8 +132,6 @@ _REGISTRY: dict[str, str] = {
     "ray": "mcrl.sweep.ray_backend:RayBackend",  # a Ray task per run, on a cluster or a local instance
     "vmap": "mcrl.sweep.local:VmapBackend",  # a process per group of runs trained as one vmapped computation
 }
-# a backend-only setting -> the backend that takes it
-OPTIONS = {"address": "ray", "gpus_per_run": "ray", "group_size": "vmap", "env_workers": "vmap"}
 
 
 def names() -> tuple[str, ...]:
@@ -127,6 +144,30 @@ def get(name: str) -> type:
     return getattr(importlib.import_module(module), attr)
 
 
-def options_of(name: str) -> tuple[str, ...]:
-    """The backend-only settings backend `name` takes (without importing it)."""
-    return tuple(k for k, v in OPTIONS.items() if v == name)
+def option_names() -> tuple[str, ...]:
+    """Every backend's own options (imports each backend's module, which imports neither jax nor ray)."""
+    return tuple(dict.fromkeys(o for n in names() for o in get(n).OPTIONS))
+
+
+def given_options(args: Any) -> dict[str, Any]:
+    """The backends' options among the attributes of `args` (`mcrl sweep`'s and `mcrl decide`'s parsed flags)."""
+    return {k: getattr(args, k) for k in option_names() if hasattr(args, k)}
+
+
+def options_for(name: str, given: dict[str, Any]) -> dict[str, Any]:
+    """Backend `name`'s options: its `OPTIONS` with the `given` values (None: not given), checked by its
+    `check_options`. Another backend's option given (not None, not its default) is a one-line error naming the
+    fix; a name no backend takes, a TypeError."""
+    cls = get(name)
+    for option, value in given.items():
+        if option in cls.OPTIONS:
+            continue
+        owner = next((n for n in names() if option in get(n).OPTIONS), None)
+        if owner is None:
+            raise TypeError(f"no sweep backend takes the option {option!r} (they take {', '.join(option_names())})")
+        if value is not None and value != get(owner).OPTIONS[option]:
+            flag = "--" + option.replace("_", "-")
+            raise MCRLError(f"{flag} is for --backend {owner}: add --backend {owner} or drop it")
+    options = {**cls.OPTIONS, **{k: v for k, v in given.items() if k in cls.OPTIONS and v is not None}}
+    cls.check_options(options)
+    return options

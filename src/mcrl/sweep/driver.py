@@ -149,41 +149,36 @@ def summary_text(summary: dict) -> str:
 
 # ------------------------------------------------------------------------------------------------ the loop
 def drive(backend: Backend, todo: list[RunPlan], drv: Driver, retries: int) -> None:
-    """Train `todo` on `backend`, reporting each run's end to `drv` (see the module's docstring)."""
+    """Train `todo` on `backend`, reporting each run's end to `drv` (see the module's docstring). The caller owns
+    the backend and closes it once (`run_sweep`: with kill=True when a second signal ends this loop)."""
     queue = deque(Job(runs) for runs in backend.jobs(todo))
     running: dict[int, tuple[Job, float]] = {}  # job id -> (job, monotonic start)
     stopping = False
-    try:
-        while queue or running:
-            if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
-                stopping = True
-                queue.clear()
-                drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
-                         "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
-                backend.request_stop()
-                if not running:
-                    break
-            while queue and len(running) < backend.slots:
-                job = _without_locked(queue.popleft(), drv)
-                if job is not None:
-                    running[job.id] = (job, time.monotonic())
-                    _launched(job, backend.launch(job), drv)
-            for event in backend.poll(1.0):
-                if event.job.id not in running:
-                    continue
-                if isinstance(event, Started):
-                    _started(event.job, event.where, drv)
-                    continue
-                job, t0 = running.pop(event.job.id)
-                retry = _ended(event, t0, drv, retries if not stopping else 0)
-                if retry is not None:
-                    queue.appendleft(retry)
-            drv.poll([r.name for job, _ in running.values() for r in job.runs])
-    except KeyboardInterrupt:  # a second signal: the workers end at once (each run keeps its last checkpoint)
-        backend.close(kill=True)
-        raise
-    finally:
-        backend.close()
+    while queue or running:
+        if stop.requested() is not None and not stopping:  # first SIGINT/SIGTERM: the runs save and stop
+            stopping = True
+            queue.clear()
+            drv.line(f"{signal.Signals(stop.requested()).name}: each running run saves a checkpoint at its "
+                     "episode's end, then the sweep stops (press Ctrl-C again to stop at once)")
+            backend.request_stop()
+            if not running:
+                break
+        while queue and len(running) < backend.slots:
+            job = _without_locked(queue.popleft(), drv)
+            if job is not None:
+                running[job.id] = (job, time.monotonic())
+                _launched(job, backend.launch(job), drv)
+        for event in backend.poll(1.0):
+            if event.job.id not in running:
+                continue
+            if isinstance(event, Started):
+                _started(event.job, event.where, drv)
+                continue
+            job, t0 = running.pop(event.job.id)
+            retry = _ended(event, t0, drv, retries if not stopping else 0)
+            if retry is not None:
+                queue.appendleft(retry)
+        drv.poll([r.name for job, _ in running.values() for r in job.runs])
 
 
 def _without_locked(job: Job, drv: Driver) -> Job | None:
@@ -223,27 +218,27 @@ def _started(job: Job, where: str, drv: Driver) -> None:
 
 
 def _ended(e: Ended, t0: float, drv: Driver, retries: int) -> Job | None:
-    """Report the end of a job; the job to start again if its worker died and retries are left."""
-    runs = e.job.runs
-    if e.status == "ok":
+    """Report the end of a job (its `Outcome`); the job to start again if its worker died and retries are left."""
+    runs, o = e.job.runs, e.outcome
+    if o.status == "ok":
         for r in runs:
-            drv.done(r, t0, e.results[r.name])
-    elif e.status == "stopped":
+            drv.done(r, t0, o.results[r.name])
+    elif o.status == "stopped":
         for r in runs:
-            drv.stopped(r.name, e.results.get(r.name))
-    elif e.status == "locked":
+            drv.stopped(r.name, o.results.get(r.name))
+    elif o.status == "locked":
         for r in runs:
-            if r.name in e.results:
-                drv.locked(r.name, e.holder)
+            if r.name in o.results:
+                drv.locked(r.name, o.holder)
             else:  # a group that could not start for one locked run: the others go back to the queue
                 drv.line(f"{drv.tag()} {r.name}: not started (its group had a locked run)")
-        rest = [r for r in runs if r.name not in e.results]
+        rest = [r for r in runs if r.name not in o.results]
         return Job(rest, e.job.attempt) if rest else None
-    elif e.status == "died" and e.job.attempt < retries:
-        drv.line(f"{drv.tag()} {e.job.label}: {e.why}; retrying from its last checkpoint "
+    elif o.status == "died" and e.job.attempt < retries:
+        drv.line(f"{drv.tag()} {e.job.label}: {o.why}; retrying from its last checkpoint "
                  f"({e.job.attempt + 1} of {retries})")
         return e.job.again()
     else:
         for r in runs:
-            drv.failed(r.name, e.why, e.traceback)
+            drv.failed(r.name, o.why, o.traceback)
     return None

@@ -11,17 +11,17 @@ runs and lets the running ones save at their episode ends (``SweepResult.stopped
 from __future__ import annotations
 
 import json
-import os
 import shlex
 import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from mcrl.config import resolve_config
 from mcrl.renames import new_names
 from mcrl.errors import MCRLError
+from mcrl.files import write_json
 from mcrl.run import lock as locks
 from mcrl.run import stop
 from mcrl.run.rundir import SWEEP_JSON
@@ -114,25 +114,22 @@ def merged_grid_and_set(old: dict | None, plan: SweepPlan) -> tuple[dict, dict]:
 
 
 def _write_sweep_json(exp: Path, doc: dict) -> None:
-    """Atomically, indented for people to read (not rundir.write_json_atomic: sweep.json is not a run's file)."""
-    path = exp / SWEEP_JSON
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(doc, indent=2, default=str) + "\n")
-    os.replace(tmp, path)
+    """Atomically, indented for people to read, ending with a newline."""
+    write_json(exp / SWEEP_JSON, doc, indent=2, default=str, newline=True)
 
 
 def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str = "local", workers: int | None = None,
-              threads_per_run: int | None = None, address: str | None = None, gpus_per_run: float = 0.0,
-              tracking: bool = False, tracking_uri: str | None = None, retries: int = 0, progress: bool = True,
-              out: Callable[[str], None] | None = None, group_size: int | None = None,
-              env_workers: int = 0, shared_dir: bool = False, command: str | None = None) -> SweepResult:
+              threads_per_run: int | None = None, tracking: bool = False, tracking_uri: str | None = None,
+              retries: int = 0, progress: bool = True, out: Callable[[str], None] | None = None,
+              shared_dir: bool = False, command: str | None = None, **options: Any) -> SweepResult:
     """Run every unfinished run of `plan` into one experiment directory; see the package docstring.
 
     `threads_per_run`: pin each run's process to that many cores (default: not pinned, every core, as
     `mcrl train`; docs/performance.md, "A sweep's workers and their cores"). `shared_dir`: ``exp`` may hold other
     files before the sweep's first run (`mcrl decide` runs its batches into the plan's directory, and records its
     looks itself: no provenance.json is written there). `command`: the command line provenance.json records
-    (default: this process's, `sys.argv`).
+    (default: this process's, `sys.argv`). `options`: the backend's own (its `OPTIONS`: `address` and
+    `gpus_per_run` for ray, `group_size` and `env_workers` for vmap; None: its default), checked by the backend.
     Raises MCRLError (before writing anything) on bad settings; a run that fails is reported in the
     result (`failed`) while the others go on."""
     # ---- validate everything before EXP exists
@@ -146,17 +143,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
         raise MCRLError(f"--threads-per-run {threads_per_run}: give at least 1")
     if retries < 0:
         raise MCRLError(f"--retries {retries}: give 0 or more")
-    if gpus_per_run and gpus_per_run < 0:
-        raise MCRLError(f"--gpus-per-run {gpus_per_run}: give 0 or more")
-    given = {"address": address, "gpus_per_run": gpus_per_run, "group_size": group_size, "env_workers": env_workers}
-    for option, value in given.items():
-        if value and option not in backends.options_of(backend):
-            flag, other = "--" + option.replace("_", "-"), backends.OPTIONS[option]
-            raise MCRLError(f"{flag} is for --backend {other}: add --backend {other} or drop it")
-    if group_size is not None and group_size < 1:
-        raise MCRLError(f"--group-size {group_size}: give at least 1 run per group")
-    if env_workers < 0:
-        raise MCRLError(f"--env-workers {env_workers}: give 0 (environments in the group's process) or more")
+    options = backends.options_for(backend, options)  # another backend's option, or a bad value: MCRLError
     cls = backends.get(backend)
     cores = cpu_count()
     n_workers = workers or cls.default_workers(cores)
@@ -169,8 +156,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
 
         tracker = Tracker.check(tracking_uri, exp)  # probes; writes nothing
     settings = backends.Settings(exp, (old or {}).get("id") or uuid.uuid4().hex, n_workers, threads,
-                                 thread_env(threads), workers is not None, threads_per_run is not None, address,
-                                 gpus_per_run, group_size, env_workers)
+                                 thread_env(threads), workers is not None, threads_per_run is not None, options)
     cls.check(settings)
 
     # ---- start
@@ -178,6 +164,7 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
     result = SweepResult(exp)
     held = drv = log_pool = recorded = None
     log_jobs: list = []
+    kill = False
 
     def log(run: RunPlan) -> None:
         try:
@@ -239,17 +226,22 @@ def run_sweep(plan: SweepPlan, exp_dir: str | Path | None = None, backend: str =
                 drv.line("logging the last run(s) to MLflow ...")
             log_pool.shutdown(wait=True)
             log_pool = None
+    except KeyboardInterrupt:  # a second signal: the running runs end at once, each keeps its last checkpoint
+        kill = True
+        raise
     finally:
         if log_pool is not None:  # interrupted: do not wait for MLflow (the next sweep call logs what is missing)
             log_pool.shutdown(wait=False, cancel_futures=True)
-        if drv is not None:
-            drv.close()
-        if recorded is not None:
-            try:
-                provenance.end(exp, recorded)
-            except (OSError, MCRLError):  # the record keeps ended: null; the sweep's own error, if any, stays the error
-                pass
-        if held is not None:
-            held.release()
-        runner.close()
+        try:  # the backend's one close, before EXP is unlocked: a stop lets each running run save, a kill does not
+            runner.close(kill=kill)
+        finally:
+            if drv is not None:
+                drv.close()
+            if recorded is not None:
+                try:
+                    provenance.end(exp, recorded)
+                except (OSError, MCRLError):  # the record keeps ended: null; the sweep's own error stays the error
+                    pass
+            if held is not None:
+                held.release()
     return result

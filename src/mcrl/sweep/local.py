@@ -4,15 +4,15 @@ A job is one run (``--backend local``, `LocalBackend`) or a group of runs traine
 (``--backend vmap``, `VmapBackend`, see ``mcrl.run.group``). Each worker process starts with the limits of
 ``worker.thread_env`` and, with ``--threads-per-run N``, pinned to N cores of its slot (`worker.pin_cores`, so two
 workers never share one), both before it imports anything else (so before jax); it writes straight into
-``EXP/runs/<name>/`` (each run locked, as `mcrl train` locks it), dies with the driver, and sends one message back
-through a pipe: ("ok", {name: summary}), ("stopped", {name: step}), ("locked", {name: None}, holder) or ("error",
-why, traceback). A worker that dies without a message (killed, out of memory) ended as "died": the driver
-(`mcrl.sweep.driver.drive`) starts it again from its runs' last checkpoints if retries are left.
+``EXP/runs/<name>/`` (each run locked, as `mcrl train` locks it), dies with the driver, and sends its job's
+`Outcome` back through a pipe (`mcrl.sweep.backend.Outcome`: "ok", "stopped", "locked" or "error"). A worker that
+dies without one (killed, out of memory) ended as "died": the driver (`mcrl.sweep.driver.drive`) starts it again
+from its runs' last checkpoints if retries are left.
 
 A stop request (`request_stop`) sends SIGTERM to the running workers, which save each run at its next episode end
 and report "stopped". A worker takes every signal as that one request (a terminal's Ctrl-C reaches it and its
-driver alike); `close(kill=True)` (a second signal to the driver) kills them at once, each run keeping its last
-checkpoint.
+driver alike). `close()` stops the workers still running the same way and waits for them; `close(kill=True)` (a
+second signal to the driver) kills them at once, each run keeping its last periodic checkpoint.
 """
 from __future__ import annotations
 
@@ -23,10 +23,10 @@ from typing import Any, ClassVar
 
 from mcrl.errors import MCRLError
 from mcrl.run import lock, stop
-from mcrl.sweep.backend import Ended, Job, Settings, Started
+from mcrl.sweep.backend import Ended, Job, Outcome, Settings, Started
 from mcrl.sweep.files import run_dir, run_status
 from mcrl.sweep.plan import RunPlan
-from mcrl.sweep.worker import (die_with_parent, error_report, patched_environ, pin_cores, train_group_runs,
+from mcrl.sweep.worker import (die_with_parent, outcome_of, patched_environ, pin_cores, train_group_runs,
                                train_one)
 
 
@@ -44,19 +44,9 @@ def _local_worker(spec: dict[str, Any], env: dict[str, str], conn) -> None:
                 summaries = {run["name"]: train_one(run["config"], run["run_dir"])}
             else:
                 summaries = train_group_runs(spec["runs"], spec["env_workers"])
-        conn.send(("ok", summaries, None))
-    except stop.Stopped as e:
-        names = {os.path.abspath(r["run_dir"]): r["name"] for r in spec["runs"]}
-        conn.send(("stopped", {names[os.path.abspath(d)]: step for d, step in e.saved}, None))
-    except lock.Locked as e:  # another process writes one of its runs
-        names = {os.path.abspath(r["run_dir"]): r["name"] for r in spec["runs"]}
-        conn.send(("locked", {names.get(os.path.abspath(e.directory), spec["runs"][0]["name"]): None}, e.holder))
-    except MCRLError as e:
-        conn.send(("error", str(e), None))
-    except KeyboardInterrupt:
-        conn.send(("error", "interrupted", None))
-    except BaseException as e:  # report it to the driver, which keeps the other runs going
-        conn.send(("error", *error_report(e)))
+        conn.send(Outcome("ok", summaries))
+    except BaseException as e:  # stopped, locked or failed: the driver keeps the other runs going
+        conn.send(outcome_of(e, {r["name"]: r["run_dir"] for r in spec["runs"]}))
     finally:
         conn.close()
 
@@ -66,11 +56,13 @@ class LocalBackend:
 
     name: ClassVar[str] = "local"
     group: ClassVar[bool] = False
+    OPTIONS: ClassVar[dict[str, Any]] = {}
 
     def __init__(self, settings: Settings):
         import multiprocessing as mp
 
         self.s = settings
+        self.options = {**self.OPTIONS, **settings.options}
         self.slots = settings.workers
         self._ctx = mp.get_context("spawn")
         self._running: dict[int, tuple] = {}  # job id -> (job, process, reader, slot)
@@ -78,6 +70,10 @@ class LocalBackend:
     @classmethod
     def default_workers(cls, cores: int) -> int:
         return cores
+
+    @classmethod
+    def check_options(cls, options: dict[str, Any]) -> None:
+        pass
 
     @classmethod
     def check(cls, settings: Settings) -> None:
@@ -91,8 +87,8 @@ class LocalBackend:
         slot = next(i for i in range(len(self._running) + 1) if i not in used)  # the cores no running job has
         s = self.s
         spec = {"runs": [{"name": r.name, "config": r.config.to_dict(), "run_dir": str(run_dir(s.exp, r.name))}
-                         for r in job.runs], "group": self.group, "env_workers": s.env_workers, "exp": str(s.exp),
-                "sweep_id": s.sweep_id, "threads": s.threads, "pin": s.pin, "slot": slot}
+                         for r in job.runs], "group": self.group, "env_workers": self.options.get("env_workers", 0),
+                "exp": str(s.exp), "sweep_id": s.sweep_id, "threads": s.threads, "pin": s.pin, "slot": slot}
         reader, writer = self._ctx.Pipe(duplex=False)
         proc = self._ctx.Process(target=_local_worker, args=(spec, s.env, writer), name=f"mcrl-{job.runs[0].name}",
                                  daemon=True)
@@ -121,13 +117,8 @@ class LocalBackend:
                 code = proc.exitcode
                 why = (f"worker killed by signal {-code}" if code is not None and code < 0
                        else f"worker exited with code {code}")
-                out.append(Ended(job, "died", why=why))
-            elif msg[0] in ("ok", "stopped"):
-                out.append(Ended(job, msg[0], results=msg[1]))
-            elif msg[0] == "locked":
-                out.append(Ended(job, "locked", results=msg[1], holder=msg[2]))
-            else:
-                out.append(Ended(job, "error", why=msg[1], traceback=msg[2]))
+                msg = Outcome("died", why=why)
+            out.append(Ended(job, msg))
         return out
 
     def request_stop(self) -> None:
@@ -136,18 +127,22 @@ class LocalBackend:
                 os.kill(proc.pid, signal.SIGTERM)
 
     def close(self, kill: bool = False) -> None:
-        for _, proc, _, _ in self._running.values():
-            if kill:
-                proc.kill()
-            elif proc.is_alive():  # interrupted: stop the runs (each keeps its checkpoints)
-                proc.terminate()
-        for _, proc, reader, _ in self._running.values():
-            proc.join(10)
-            if proc.is_alive():
-                proc.kill()
+        """Stop the running workers (SIGTERM: each run saves at its episode's end) and wait for them; with `kill`,
+        or if the wait is interrupted, SIGKILL them at once."""
+        from multiprocessing.connection import wait
+
+        try:
+            if not kill:
+                self.request_stop()
+                while alive := [p.sentinel for _, p, _, _ in self._running.values() if p.is_alive()]:
+                    wait(alive, timeout=1.0)
+        finally:
+            for _, proc, reader, _ in self._running.values():
+                if proc.is_alive():
+                    proc.kill()
                 proc.join()
-            reader.close()
-        self._running.clear()
+                reader.close()
+            self._running.clear()
 
 
 class VmapBackend(LocalBackend):
@@ -157,6 +152,16 @@ class VmapBackend(LocalBackend):
 
     name: ClassVar[str] = "vmap"
     group: ClassVar[bool] = True
+    # --group-size: at most N runs a group (None: shared evenly); --env-workers: environment processes a group
+    OPTIONS: ClassVar[dict[str, Any]] = {"group_size": None, "env_workers": 0}
+
+    @classmethod
+    def check_options(cls, options: dict[str, Any]) -> None:
+        if options["group_size"] is not None and options["group_size"] < 1:
+            raise MCRLError(f"--group-size {options['group_size']}: give at least 1 run per group")
+        if options["env_workers"] < 0:
+            raise MCRLError(f"--env-workers {options['env_workers']}: give 0 (environments in the group's process) "
+                            "or more")
 
     @classmethod
     def default_workers(cls, cores: int) -> int:
@@ -172,6 +177,6 @@ class VmapBackend(LocalBackend):
         by_step: dict[int, list[RunPlan]] = {}
         for r in todo:
             by_step.setdefault(run_status(run_dir(self.s.exp, r.name))[1], []).append(r)
-        size = self.s.group_size or max(1, -(-len(todo) // max(1, self.s.workers)))
+        size = self.options["group_size"] or max(1, -(-len(todo) // max(1, self.s.workers)))
         return [[runs[i] for i in ix] for runs in by_step.values()
                 for ix in plan_groups([r.config for r in runs], size)]

@@ -11,9 +11,12 @@ end. The driver writes them into ``EXP``, holding the run's lock (`mcrl.run.lock
 writes into ``EXP`` holds it itself.
 
 A stop request (`request_stop`) raises a flag in the ``_Inbox``; each running task polls it and stops its run at
-the next episode end with a checkpoint (shipped back if need be), as `mcrl train` does on a signal.
-``close(kill=True)`` cancels the tasks at once. A task whose worker died (killed, node lost) ends as "died", and
-the driver (`mcrl.sweep.driver.drive`) starts it again if retries are left (Ray's own retries are off).
+the next episode end with a checkpoint (shipped back if need be), as `mcrl train` does on a signal. A task
+returns its job's `Outcome` (`mcrl.sweep.backend`) and the files it ships. ``close()`` stops the tasks still
+running the same way and waits for them, writing what they ship; ``close(kill=True)`` cancels them at once
+(``ray.cancel(force=True)``: each run keeps its last periodic checkpoint). A task whose worker died (killed, node
+lost) ends as "died", and the driver (`mcrl.sweep.driver.drive`) starts it again if retries are left (Ray's own
+retries are off).
 
 Ray is imported only when the sweep uses it (``import_ray``), after ``ray_auth_env`` has set what Ray
 reads at import time.
@@ -34,10 +37,10 @@ from typing import Any, ClassVar
 from mcrl.errors import MCRLError
 from mcrl.run import lock, rundir, stop
 from mcrl.run.rundir import SWEEP_JSON
-from mcrl.sweep.backend import Ended, Job, Settings, Started
+from mcrl.sweep.backend import Ended, Job, Outcome, Settings, Started
 from mcrl.sweep.files import collect_run_files, run_dir, run_status, write_run_files
 from mcrl.sweep.plan import RunPlan
-from mcrl.sweep.worker import error_report, pin_cores, train_one
+from mcrl.sweep.worker import outcome_of, pin_cores, train_one
 
 # Debugging / testing knob (read on the driver): "auto" (default) = a Ray worker writes into EXP when it can
 # see it; "always" = every Ray run trains in a temporary directory and ships its files back; or a
@@ -145,14 +148,17 @@ def _sees_experiment(spec: dict[str, Any]) -> bool:
     return d.get("id") == spec["sweep_id"] and os.access(spec["exp"], os.W_OK)
 
 
-def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> dict[str, Any]:
-    """One run as a Ray task (runs in a fresh worker whose thread env vars came with the task)."""
+def _ray_task(spec: dict[str, Any], inbox, seed_box: list,
+              force_ship: bool) -> tuple[Outcome, dict[str, bytes] | None]:
+    """One run as a Ray task (runs in a fresh worker whose thread env vars came with the task): its `Outcome`,
+    and the run's files when it trained in a temporary directory (else None)."""
     if spec["pin"]:
         pin_cores(spec["threads"], spec["slot"])  # before train_one imports jax
     import ray
 
+    name = spec["name"]
     if ray.get(inbox.stopping.remote()):
-        return {"stopped": None}
+        return Outcome("stopped", {name: None}), None
     lock.describe_holder(f"a Ray task of `mcrl sweep --exp {spec['exp']}`")
     shared = not force_ship and _sees_experiment(spec)
     ray.get(inbox.push.remote(("start", spec["name"], os.getpid(), socket.gethostname(), shared)))
@@ -169,7 +175,7 @@ def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> 
     try:
         if shared:
             with stop.handle(second_stops_now=False):
-                return {"summary": train_one(spec["config"], spec["run_dir"])}
+                return Outcome("ok", {name: train_one(spec["config"], spec["run_dir"])}), None
         tmp = Path(tempfile.mkdtemp(prefix="mcrl-sweep-"))
         rdir = tmp / spec["name"]
         try:
@@ -196,24 +202,15 @@ def _ray_task(spec: dict[str, Any], inbox, seed_box: list, force_ship: bool) -> 
                 with stop.handle(second_stops_now=False):
                     summary = train_one(spec["config"], rdir)
             except stop.Stopped as e:
-                ((_, step),) = e.saved
-                return {"stopped": step, "files": collect_run_files(rdir, final=False)}
+                return outcome_of(e, {name: rdir}), collect_run_files(rdir, final=False)
             finally:
                 shipping_done.set()
                 watcher.join()
-            return {"summary": summary, "files": collect_run_files(rdir, final=True)}
+            return Outcome("ok", {name: summary}), collect_run_files(rdir, final=True)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-    except stop.Stopped as e:
-        ((_, step),) = e.saved
-        return {"stopped": step}
-    except lock.Locked as e:  # another process writes the run
-        return {"locked": e.holder}
-    except MCRLError as e:
-        return {"error": str(e)}
-    except Exception as e:
-        why, tb = error_report(e)
-        return {"error": why, "traceback": tb}
+    except (stop.Stopped, Exception) as e:  # stopped, locked or failed (a cancelled task's interrupt goes on)
+        return outcome_of(e, {name: spec["run_dir"]}), None
     finally:
         done.set()
 
@@ -225,10 +222,13 @@ class RayBackend:
     """A Ray task per run (see the module's docstring)."""
 
     name: ClassVar[str] = "ray"
+    # --address: the cluster (None: a local instance); --gpus-per-run: the GPUs each task asks for
+    OPTIONS: ClassVar[dict[str, Any]] = {"address": None, "gpus_per_run": 0.0}
 
     def __init__(self, settings: Settings):
         self.s = settings
-        self.ray, self.local_instance = start_ray(settings.address, settings.workers * settings.threads)
+        self.options = {**self.OPTIONS, **settings.options}
+        self.ray, self.local_instance = start_ray(self.options["address"], settings.workers * settings.threads)
         ray = self.ray
         if settings.workers_given:
             self.slots = settings.workers
@@ -242,7 +242,7 @@ class RayBackend:
         # max_calls=1: a fresh worker process per run (its cores and thread settings from the first instruction
         # on, and its memory returned when the run ends); retries are the driver's
         self._task = ray.remote(max_calls=1)(_ray_task).options(
-            num_cpus=settings.threads, num_gpus=settings.gpus_per_run or 0, max_retries=0,
+            num_cpus=settings.threads, num_gpus=self.options["gpus_per_run"] or 0, max_retries=0,
             runtime_env={"env_vars": settings.env})
         self._inflight: dict[Any, tuple[Job, int]] = {}  # ref -> (job, slot)
         self._locks: dict[str, lock.RunLock] = {}  # runs whose files this driver writes (their tasks ship them)
@@ -252,10 +252,16 @@ class RayBackend:
         return cores
 
     @classmethod
+    def check_options(cls, options: dict[str, Any]) -> None:
+        if options["gpus_per_run"] < 0:
+            raise MCRLError(f"--gpus-per-run {options['gpus_per_run']}: give 0 or more")
+
+    @classmethod
     def check(cls, settings: Settings) -> None:
-        if settings.address:
-            check_ray_address(settings.address)
-        ray_auth_env(settings.address)
+        address = settings.options.get("address")
+        if address:
+            check_ray_address(address)
+        ray_auth_env(address)
         import_ray()
 
     def jobs(self, todo: list[RunPlan]) -> list[list[RunPlan]]:
@@ -298,7 +304,7 @@ class RayBackend:
                         with contextlib.suppress(Exception):
                             ray.cancel(ref, force=True)
                         self._inflight.pop(ref)
-                        out.append(Ended(job, "locked", results={name: None}, holder=e.holder))
+                        out.append(Ended(job, Outcome("locked", {name: None}, holder=e.holder)))
             elif msg[0] == "files" and msg[1] in self._locks:
                 write_run_files(run_dir(self.s.exp, msg[1]), msg[2], job.runs[0].config.keep_checkpoints)
         for ref in ready:
@@ -317,35 +323,39 @@ class RayBackend:
         """The end of `job`'s task `ref`, the files it shipped back written into EXP."""
         (run,) = job.runs
         try:
-            res = self.ray.get(ref)
+            outcome, files = self.ray.get(ref)
         except Exception as e:  # the worker died (killed, out of memory, node lost)
             first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-            return Ended(job, "died", why=f"{type(e).__name__}: {first}"[:300])
-        if "error" in res:
-            return Ended(job, "error", why=res["error"], traceback=res.get("traceback"))
-        if "locked" in res:
-            return Ended(job, "locked", results={run.name: None}, holder=res["locked"])
-        if "files" in res:
-            write_run_files(run_dir(self.s.exp, run.name), res["files"], run.config.keep_checkpoints)
-        if "stopped" in res:
-            return Ended(job, "stopped", results={run.name: res["stopped"]})
-        return Ended(job, "ok", results={run.name: res["summary"]})
+            return Ended(job, Outcome("died", why=f"{type(e).__name__}: {first}"[:300]))
+        if files is not None:
+            write_run_files(run_dir(self.s.exp, run.name), files, run.config.keep_checkpoints)
+        return Ended(job, outcome)
 
     def request_stop(self) -> None:
         self.ray.get(self._inbox.request_stop.remote())
 
     def close(self, kill: bool = False) -> None:
+        """Stop the running tasks (each run saves at its episode's end; shipped files are written into EXP) and
+        wait for them; with `kill`, or if the stop fails or is interrupted, cancel them at once. Then Ray ends."""
         if self.ray is None:
             return
-        for ref in self._inflight:
+        try:
+            if not kill and self._inflight:
+                self.request_stop()
+                while self._inflight:
+                    self.poll(1.0)
+        except Exception:  # the sweep's own error, if any, stays the error: what is left is cancelled below
+            pass
+        finally:
+            for ref in self._inflight:
+                with contextlib.suppress(Exception):
+                    self.ray.cancel(ref, force=True)
             with contextlib.suppress(Exception):
-                self.ray.cancel(ref, force=True)
-        with contextlib.suppress(Exception):
-            self.ray.kill(self._inbox)
-        for held in self._locks.values():
-            held.release()
-        self._inflight.clear()
-        self._locks.clear()
-        with contextlib.suppress(Exception):
-            self.ray.shutdown()
-        self.ray = None
+                self.ray.kill(self._inbox)
+            for held in self._locks.values():
+                held.release()
+            self._inflight.clear()
+            self._locks.clear()
+            with contextlib.suppress(Exception):
+                self.ray.shutdown()
+            self.ray = None

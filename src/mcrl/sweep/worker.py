@@ -19,7 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from mcrl.config import Config
-from mcrl.run import rundir
+from mcrl.errors import MCRLError
+from mcrl.run import lock, rundir, stop
+from mcrl.sweep.backend import Outcome
 
 
 def cpu_count() -> int:
@@ -97,6 +99,24 @@ def train_group_runs(runs: list[dict[str, Any]], env_workers: int = 0) -> dict[s
 def error_report(e: BaseException) -> tuple[str, str]:
     """(one line for the driver's output, the traceback for sweep-error.log) of an unexpected error."""
     return f"{type(e).__name__}: {e}".splitlines()[0], traceback.format_exc()
+
+
+def outcome_of(e: BaseException, runs: dict[str, str | Path]) -> Outcome:
+    """The `Outcome` of a job whose runs (name -> run directory) raised `e`, on every backend (call it in the
+    `except` block: an unexpected error's traceback comes along): stopped on a signal, each run with the step of
+    the checkpoint it saved; locked (a run another process writes); or an error."""
+    names = {os.path.abspath(d): n for n, d in runs.items()}
+    first = next(iter(runs))
+    if isinstance(e, stop.Stopped):
+        return Outcome("stopped", {names.get(os.path.abspath(d), first): step for d, step in e.saved})
+    if isinstance(e, lock.Locked):
+        return Outcome("locked", {names.get(os.path.abspath(e.directory), first): None}, holder=e.holder)
+    if isinstance(e, MCRLError):
+        return Outcome("error", why=str(e))
+    if isinstance(e, KeyboardInterrupt):
+        return Outcome("error", why="interrupted")
+    why, tb = error_report(e)
+    return Outcome("error", why=why, traceback=tb)
 
 
 def die_with_parent() -> None:
