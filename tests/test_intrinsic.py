@@ -115,7 +115,8 @@ def test_every_registered_reward_implements_the_interface():
     for name in intrinsic.names():
         net = Agent(10, 4, 6, resolve_config("fetchreach-sacmc", {"intrinsic": name})).intrinsic_net
         assert isinstance(net, intrinsic.IntrinsicReward), name
-        assert net.metrics and net.title and net.raw_label
+        assert isinstance(net.about, intrinsic.About) and net.about == intrinsic.about(name), name
+        assert net.about.raw_metric in net.about.metrics and net.about.title and net.about.raw_label
 
 
 _SAC_STATES: dict = {}
@@ -162,7 +163,7 @@ def test_intrinsic_reward_is_in_range_and_mixed(kind, small):
     assert float(metrics["mean_total_reward"]) == pytest.approx(mixed, rel=1e-5)
     raw_metric = "mean_raw_kl" if kind == "mc" else "mean_raw_intrinsic"
     assert float(metrics[raw_metric]) == pytest.approx(float(np.mean(step.raw)), rel=1e-6)
-    assert set(agent.intrinsic_net.metrics) | {"mean_intrinsic_reward"} <= set(metrics)
+    assert set(agent.about.metrics) | {"mean_intrinsic_reward"} <= set(metrics)
 
 
 def test_config_of_intrinsic():
@@ -246,8 +247,7 @@ def test_the_reward_trains_fetchreach(kind, tmp_path):
 class Toy(intrinsic.Sizes):
     """A fifth reward, all of it: the squared error of a linear model predicting s' from (s, a)."""
 
-    title: ClassVar[str] = "Toy"
-    raw_label: ClassVar[str] = "raw toy error"
+    about: ClassVar[intrinsic.About] = intrinsic.About("Toy", "SAC+Toy", raw_label="raw toy error")
 
     def init(self, key):
         return {"w": 0.01 * jax.random.normal(key, (self.state_dim + self.action_dim, self.state_dim))}, {}
@@ -301,16 +301,16 @@ def test_the_video_timeline_shows_the_runs_own_reward(kind, toy_registered):
     cfg = resolve_config("fetchreach-sac", {"hidden_sizes": [32], "intrinsic_hidden_sizes": [32],
                                             "intrinsic": kind, "intrinsic_alpha": 0.2})
     agent = Agent(10, 4, 6, cfg)
-    state, net = agent.init(0), agent.intrinsic_net
+    state, net, about = agent.init(0), agent.intrinsic_net, agent.about
     rng = np.random.default_rng(0)
     obs, actions = rng.normal(size=(21, 10)).astype(np.float32), rng.uniform(-1, 1, (20, 4)).astype(np.float32)
     raw = np.asarray(net.reward(state.intrinsic.params, state.intrinsic.untrained, obs[:-1, :6], actions, obs[1:, :6]))
     state = state._replace(norm=normaliser.from_values(raw))  # a history these values spread over
     rows = intrinsic_timeline(cfg, agent, state, obs, actions)
-    assert list(rows) == [net.raw_label, f"{net.title} reward (normalised)"]
-    np.testing.assert_allclose(rows[net.raw_label], raw, rtol=1e-6)
+    assert list(rows) == [about.raw_label, f"{about.title} reward (normalised)"]
+    np.testing.assert_allclose(rows[about.raw_label], raw, rtol=1e-6)
     expected, _ = normaliser.reward(state.norm, raw, 0.0, 94.0, -1.0, 0.0)
-    np.testing.assert_allclose(rows[f"{net.title} reward (normalised)"], expected, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(rows[f"{about.title} reward (normalised)"], expected, rtol=1e-6, atol=1e-7)
     assert np.ptp(expected) > 0.5
     assert intrinsic_timeline(resolve_config("fetchreach-sac"), agent, agent.init(0)._replace(intrinsic=None),
                               obs, actions) == {}

@@ -34,8 +34,7 @@ from mcrl.algo import intrinsic
 
 @dataclass(frozen=True)
 class Mine(intrinsic.Sizes):
-    title: ClassVar[str] = "Mine"
-    raw_label: ClassVar[str] = "raw error"
+    about: ClassVar[intrinsic.About] = intrinsic.About("Mine", "SAC+Mine", raw_label="raw error")
 
     def init(self, key):
         return {"w": 0.01 * jax.random.normal(key, (self.state_dim + self.action_dim, self.state_dim))}, {}

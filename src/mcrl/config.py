@@ -47,7 +47,8 @@ class Config:
     her_rounding: str = "nearest"  # relabelled rows of a batch: nearest round(B k/(k+1)) = 205 of 256 | floor: int(),
     # 204 of 256, as stable-baselines3's HerReplayBuffer (the thesis' code's buffer)
     # --- the intrinsic reward (docs/intrinsic.md); renamed keys were mc_* before (`mcrl.renames`) ---
-    intrinsic: str = "mc"  # the reward intrinsic_alpha mixes in: a name of mcrl.algo.intrinsic's registry
+    intrinsic: str = intrinsic_rewards.THESIS_REWARD  # the reward intrinsic_alpha mixes in: a name of
+    # mcrl.algo.intrinsic's registry; by default the thesis' MC
     intrinsic_alpha: float = 0.0  # its weight: (1 - a) r_ext + a r_int; with a schedule, the weight at the start
     intrinsic_schedule: str = "constant"  # how the weight moves in training: constant | linear | success
     intrinsic_alpha_end: float = 0.0  # linear: the weight it ends at
@@ -88,8 +89,9 @@ class Config:
 
     @property
     def intrinsic_values_per_step(self) -> int:
-        """Raw values one gradient step adds to the normaliser's history."""
-        return 1 if self.mc_reduction == "batch" else self.batch_size
+        """Raw values one gradient step adds to the normaliser's history, as its reward's `About` says (MC's batch
+        variant: one)."""
+        return intrinsic_rewards.about(self.intrinsic).values_per_step(self)
 
     @property
     def intrinsic_history_values(self) -> int | None:
@@ -290,9 +292,12 @@ def validate(cfg: Config) -> None:
             f"{', '.join(intrinsic_rewards.names())} (docs/intrinsic.md), or install the package that declares it "
             f"in the entry-point group {intrinsic_rewards.ENTRY_POINTS} (mcrl.algo.intrinsic.register lasts one "
             "process)")
-    if cfg.intrinsic != "mc" and cfg.mc_reduction == "batch":
-        bad(f"mc_reduction=batch is the thesis code's MC variant (one batch-mean KL), not defined for "
-            f"intrinsic={cfg.intrinsic}: drop it (mc_reduction=transition)")
+    for key, owner in intrinsic_rewards.owned_keys().items():  # a reward's own key, given for another reward
+        default = _FIELDS[key].default if key in _FIELDS else None  # (a key no Config has is nobody's to give)
+        if key in _FIELDS and owner != cfg.intrinsic and getattr(cfg, key) != default:
+            title = intrinsic_rewards.about(owner).title
+            bad(f"{key}={getattr(cfg, key)} is read only by intrinsic={owner} ({title}), not by "
+                f"intrinsic={cfg.intrinsic}: drop it ({key}={default})")
     if cfg.init not in ("torch", "flax"):
         bad(f"init={cfg.init!r}: choose torch (as stable-baselines3 and the thesis' code) or flax")
     if cfg.squash_correction not in ("exact", "epsilon"):

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.metrics import BOUNDS, UPDATE_METRICS, reported
+from mcrl.algo.metrics import BOUNDS, reported, update_metrics
 
 
 class Diagnostics(NamedTuple):
@@ -21,13 +21,16 @@ class Diagnostics(NamedTuple):
     bounds: jax.Array  # (2,) the normaliser's bounds at the last step (zeros without intrinsic models)
 
 
-def init() -> Diagnostics:
-    return Diagnostics({k: jnp.float32(0) for k in UPDATE_METRICS}, jnp.int32(0), jnp.zeros(2, jnp.float32))
+def init(own: tuple[str, ...] = ()) -> Diagnostics:
+    """Zero sums of what a run whose reward reports `own` (its `About.metrics`) sums: `update_metrics(own)`, the
+    same for every built-in reward (a checkpoint without a sum a reward adds keeps this zero: `restore_state`)."""
+    return Diagnostics({k: jnp.float32(0) for k in update_metrics(own)}, jnp.int32(0), jnp.zeros(2, jnp.float32))
 
 
 def add(diag: Diagnostics, metrics: dict) -> Diagnostics:
-    """`diag` with one gradient step's `metrics` (`Agent.update`'s) added; metrics it lacks count as 0."""
-    sums = {k: diag.metric_sums[k] + metrics.get(k, 0.0) for k in UPDATE_METRICS}
+    """`diag` with one gradient step's `metrics` (`Agent.update`'s) added to the sums it holds (`init`); metrics
+    it lacks count as 0."""
+    sums = {k: diag.metric_sums[k] + metrics.get(k, 0.0) for k in diag.metric_sums}
     bounds = jnp.stack([metrics[b] for b in BOUNDS]) if BOUNDS[0] in metrics else diag.bounds
     return Diagnostics(sums, diag.metric_count + 1, bounds)
 

@@ -29,7 +29,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, Sizes
+from mcrl.algo.intrinsic import ABOUT, About, Raw, Sizes
 from mcrl.algo.moments import moments_init, moments_update, standardise
 from mcrl.algo.networks import ACTIVATIONS, dense_kwargs
 
@@ -75,8 +75,7 @@ class Ensemble(ForwardModel):
 class Disagreement(Sizes):
     """The ensemble for states of `state_dim` and actions of `action_dim`; params {"ensemble"}, untrained {"obs"}."""
 
-    title: ClassVar[str] = "Disagreement"
-    raw_label: ClassVar[str] = "raw disagreement"
+    about: ClassVar[About] = ABOUT["disagreement"]
 
     @property
     def ensemble(self) -> Ensemble:

@@ -26,7 +26,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, Sizes
+from mcrl.algo.intrinsic import ABOUT, About, Raw, Sizes
 from mcrl.algo.networks import Stack
 
 FEATURES = 288  # the paper's feature size (4 stride-2 convs of 32 filters on 42x42 frames: 3 x 3 x 32)
@@ -38,8 +38,7 @@ class ICM(Sizes):
     """ICM's networks for states of `state_dim` and actions of `action_dim`; params {"encoder", "inverse",
     "forward"}, nothing untrained."""
 
-    title: ClassVar[str] = "ICM"
-    raw_label: ClassVar[str] = "raw ICM error"
+    about: ClassVar[About] = ABOUT["icm"]
 
     @property
     def encoder(self) -> Stack:

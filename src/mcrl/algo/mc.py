@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from mcrl.algo.intrinsic import Raw
+from mcrl.algo.intrinsic import ABOUT, About, Raw
 from mcrl.algo.networks import ActionModel, TransitionModel
 from mcrl.errors import MCRLError
 
@@ -109,9 +109,7 @@ class MC:
     matmul_precision: str = "float32"
     reduction: str = "transition"  # transition (thesis text) | batch (thesis code)
 
-    metrics: ClassVar[tuple[str, ...]] = ("transition_model_loss", "action_model_loss", "mean_raw_kl")
-    title: ClassVar[str] = "MC"
-    raw_label: ClassVar[str] = "raw KL (nats)"
+    about: ClassVar[About] = ABOUT["mc"]  # its models' losses and raw KL; `mc_reduction` its own key
 
     @classmethod
     def from_config(cls, cfg, state_dim: int, action_dim: int) -> "MC":

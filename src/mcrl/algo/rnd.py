@@ -26,7 +26,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 
-from mcrl.algo.intrinsic import Raw, Sizes
+from mcrl.algo.intrinsic import ABOUT, About, Raw, Sizes
 from mcrl.algo.moments import moments_init, moments_update, standardise
 from mcrl.algo.networks import Stack
 
@@ -39,8 +39,7 @@ class RND(Sizes):
     """RND's networks for states of `state_dim` (`action_dim` unused: RND looks at the next state alone); params
     {"predictor"}, untrained {"target", "obs"}."""
 
-    title: ClassVar[str] = "RND"
-    raw_label: ClassVar[str] = "raw RND error"
+    about: ClassVar[About] = ABOUT["rnd"]
 
     @property
     def target(self) -> Stack:

@@ -182,9 +182,14 @@ class Agent:
         return intrinsic_rewards.get(self.cfg.intrinsic).from_config(self.cfg, self.intrinsic_dim, self.act_dim)
 
     @property
+    def about(self) -> intrinsic_rewards.About:
+        """What mcrl knows of the config's `intrinsic` reward: its title, metrics, raw value (`About`)."""
+        return intrinsic_rewards.about(self.cfg.intrinsic)
+
+    @property
     def own_metrics(self) -> tuple[str, ...] | None:
         """The metrics its intrinsic reward reports; None without intrinsic models (`mcrl.algo.metrics.reported`)."""
-        return self.intrinsic_net.metrics if self.cfg.use_intrinsic_models else None
+        return self.about.metrics if self.cfg.use_intrinsic_models else None
 
     @property
     def target_entropy(self) -> float:

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from mcrl.algo.intrinsic import THESIS_REWARD
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT, bootstrap_ci
 
@@ -79,15 +80,18 @@ def mcrl_groups(exp: Experiment) -> list[ConfigGroup]:
 
 
 def sac_and_mc(exp: Experiment) -> tuple[list[ConfigGroup], list[ConfigGroup]]:
-    """mcrl's finished SAC (intrinsic_alpha 0) and SAC-MC (intrinsic_alpha > 0, intrinsic=mc) configurations."""
+    """mcrl's finished SAC (intrinsic_alpha 0) and SAC-MC (intrinsic_alpha > 0 with the thesis' reward,
+    `THESIS_REWARD`) configurations."""
     with_data = [g for g in mcrl_groups(exp) if g.finished and g.intrinsic_alpha is not None]
     return ([g for g in with_data if g.intrinsic_alpha == 0.0],
-            [g for g in with_data if g.intrinsic_alpha > 0.0 and g.intrinsic == "mc"])
+            [g for g in with_data if g.intrinsic_alpha > 0.0 and g.intrinsic == THESIS_REWARD])
 
 
 def other_intrinsic(exp: Experiment) -> list[ConfigGroup]:
-    """mcrl's finished configurations that mix in another intrinsic reward than MC (RND, ICM, Disagreement)."""
-    return [g for g in mcrl_groups(exp) if g.finished and (g.intrinsic_alpha or 0.0) > 0.0 and g.intrinsic != "mc"]
+    """mcrl's finished configurations that mix in another intrinsic reward than the thesis' (RND, ICM,
+    Disagreement, any registered)."""
+    return [g for g in mcrl_groups(exp)
+            if g.finished and (g.intrinsic_alpha or 0.0) > 0.0 and g.intrinsic != THESIS_REWARD]
 
 
 def reference_sac(exp: Experiment) -> list[ConfigGroup]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from mcrl.algo.intrinsic import THESIS_REWARD
 from mcrl.analysis.alpha_curve import alpha_curve_blocks
 from mcrl.analysis.cells import (interval, is_code_variant, mcrl_groups, mean_cell, mean_ci, num, reference_sac,
                                  sac_and_mc, sample_var, steps, too_few)
@@ -41,7 +42,7 @@ def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[st
     for alpha, th in t["by_alpha"].items():
         label = "SAC" if alpha == 0 else f"SAC-MC alpha={alpha:g}"
         ours = [g for g in ours_all if g.intrinsic_alpha is not None and math.isclose(g.intrinsic_alpha, alpha)
-                and (alpha == 0 or g.intrinsic == "mc")]  # RND & co. at 0.2 are not the thesis' SAC-MC
+                and (alpha == 0 or g.intrinsic == THESIS_REWARD)]  # RND & co. at 0.2 are not the thesis' SAC-MC
         if not ours:
             rows.append([label, f"{th['success_mean']:.2f}", "not in this sweep", f"{th['success_var']:.2f}", "",
                          f"{th['mean_reward']:.1f}", "not in this sweep"])

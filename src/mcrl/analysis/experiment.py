@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from mcrl.algo.intrinsic import THESIS_REWARD
 from mcrl.analysis.grouping import arms
 from mcrl.analysis.runs import Run
 from mcrl.errors import MCRLError
@@ -55,8 +56,9 @@ class ConfigGroup:
 
     @property
     def intrinsic(self) -> str:
-        """The intrinsic reward intrinsic_alpha mixes in; "mc" where no run names one (configs older than the key)."""
-        return str(self._setting("intrinsic") or "mc")
+        """The intrinsic reward intrinsic_alpha mixes in; the config's default, the thesis' reward, where no run
+        names one (configs older than the key)."""
+        return str(self._setting("intrinsic") or THESIS_REWARD)
 
     @property
     def total_steps(self) -> int | None:

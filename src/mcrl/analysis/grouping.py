@@ -11,6 +11,7 @@ import json
 from collections.abc import Sequence
 from typing import Any
 
+from mcrl.algo.intrinsic import THESIS_REWARD, about
 from mcrl.analysis.runs import Run
 from mcrl.config import Config
 from mcrl.errors import MCRLError
@@ -67,10 +68,10 @@ def _varying(settings: Sequence[dict[str, Any]]) -> list[str]:
 
 
 def _algorithm(settings: dict[str, Any]) -> str:
-    """'SAC', 'SAC-MC 0.2', 'SAC+RND 0.2': the algorithm of settings that differ from others only in the reward."""
-    alpha, reward = float(settings.get("intrinsic_alpha") or 0.0), str(settings.get("intrinsic") or "mc")
-    name = {"mc": "-MC", "rnd": "+RND", "icm": "+ICM"}.get(reward, f"+{reward.capitalize()}")
-    return "SAC" if alpha == 0.0 else f"SAC{name} {alpha:g}"
+    """'SAC', 'SAC-MC 0.2', 'SAC+RND 0.2': the algorithm of settings that differ from others only in the reward
+    (its `About.algorithm`; 'SAC+name' for a reward this process does not know)."""
+    alpha, reward = float(settings.get("intrinsic_alpha") or 0.0), str(settings.get("intrinsic") or THESIS_REWARD)
+    return "SAC" if alpha == 0.0 else f"{about(reward).algorithm} {alpha:g}"
 
 
 def arms(runs: Sequence[Run]) -> list[tuple[str, list[Run], str | None, dict[str, Any]]]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,12 +17,26 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
-from mcrl.analysis.stats import DEFAULT_N_BOOT, MIN_SEEDS_FOR_VERDICT, mean_ci_band
+from mcrl.algo.intrinsic import THESIS_REWARD, About, about
+from mcrl.analysis.stats import DEFAULT_N_BOOT, MIN_SEEDS_FOR_VERDICT, align_curves, mean_ci_band
 from mcrl.errors import MCRLError
 from mcrl.renames import new_names
 from mcrl.run.rundir import CONFIG, EVAL, METRICS, is_done, read_columns, read_json
 
 COLORS = [f"C{i}" for i in range(10)]
+
+
+def arm_colors(keys: Sequence[str]) -> dict[str, str]:
+    """Each arm's colour, by its place among the report's arms: the same in every figure of a report."""
+    return {k: COLORS[i % len(COLORS)] for i, k in enumerate(keys)}
+
+
+def curves_by_config(series: Sequence[tuple[str, Mapping[str, np.ndarray]]],
+                     col: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(config key, CSV columns) per run -> (step grid, {config key: curves (n_runs, n_grid)})."""
+    grid, curves = align_curves([(cols["step"], cols[col]) for _, cols in series])
+    keys = [k for k, _ in series]
+    return grid, {k: curves[[i for i, kk in enumerate(keys) if kk == k]] for k in dict.fromkeys(keys)}
 
 
 def has_data(cols: Mapping[str, np.ndarray], name: str) -> bool:
@@ -105,11 +119,17 @@ _RUN_PANELS: list[tuple[str, str, list[tuple[str, str]], str, bool]] = [
     ("actor loss", "loss", [("actor_loss", "actor")], "metrics", False),
     ("critic loss", "loss", [("critic_loss", "critic")], "metrics", False),
     ("entropy coefficient", "alpha (entropy)", [("ent_coef", "ent_coef")], "metrics", True),
-    ("MC model losses (NLL)", "loss", [("transition_model_loss", "p(s'|s,a)"),
-                                       ("action_model_loss", "p(s'|a)")], "metrics", False),
-    ("mean MC reward (replay batches)", "reward", [("mean_intrinsic_reward", "MC reward")], "metrics", False),
-    ("raw KL (MC)", "nats", [("mean_raw_kl", "raw KL")], "metrics", False),
 ]
+
+
+def _reward_panels(a: About) -> list[tuple[str, str, list[tuple[str, str]], str, bool]]:
+    """A run's panels of its intrinsic reward, as its `About` names it: its models' losses (its metrics but the
+    raw value), its normalised reward, its raw value."""
+    losses = [(c, c) for c in a.metrics if c != a.raw_metric]
+    return ([(f"{a.title} model losses", "loss", losses, "metrics", False)] if losses else []) + [
+        (f"mean {a.title} reward (replay batches)", "reward", [("mean_intrinsic_reward", f"{a.title} reward")],
+         "metrics", False),
+        (f"{a.raw_label} ({a.title})", "raw value", [(a.raw_metric, a.raw_label)], "metrics", False)]
 
 
 def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
@@ -117,8 +137,9 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
 
     Panels: eval success rate and eval mean return (from eval.csv; the training-episode values
     from metrics.csv dashed beside them), the intrinsic weight if the run's schedule moves it, actor and
-    critic loss, entropy coefficient, MC model losses, mean MC reward and raw KL; a panel is left out when its
-    columns are empty (e.g. the MC panels of a plain SAC run). Default output: ``RUN_DIR/curves.png``.
+    critic loss, entropy coefficient, and the run's intrinsic reward as its `About` names it (MC: its model
+    losses, mean MC reward, raw KL); a panel is left out when its columns are empty (e.g. the intrinsic panels of a
+    plain SAC run). Default output: ``RUN_DIR/curves.png``.
     """
     run = Path(run_dir)
     if not run.is_dir():
@@ -131,7 +152,8 @@ def plot_run(run_dir: str | Path, out_png: str | Path | None = None) -> Path:
     cfg = new_names(read_json(run / CONFIG))  # {} when unreadable: a plot must not fail on it
     moving = cfg.get("intrinsic_schedule", "constant") != "constant"  # a constant weight is a flat line: left out
     panels = []
-    for title, ylabel, cols, source, logy in _RUN_PANELS:
+    reward = about(str(cfg.get("intrinsic") or THESIS_REWARD))  # the config's default where it names none
+    for title, ylabel, cols, source, logy in _RUN_PANELS + _reward_panels(reward):
         if cols[0][0] == "intrinsic_alpha" and not moving:
             continue
         series = []  # (steps, values, label, linestyle)
@@ -170,4 +192,4 @@ def figure_to_png(fig: Figure, path: str | Path | None = None, dpi: int = 100) -
 
 
 __all__ = ["plot_run", "plot_curves_with_band", "panel_grid", "has_data", "figure_to_png", "steps_in_thousands",
-           "COLORS"]
+           "COLORS", "arm_colors", "curves_by_config"]

@@ -25,12 +25,12 @@ from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.families import ReportClaims
 from mcrl.analysis.hypothesis import fisher_exact, holm, rank_sum_test
 from mcrl.analysis.markdown import Block, Bullets, Figure, Heading, Paragraph, Table
-from mcrl.analysis.plots import COLORS, figure_to_png, has_data, panel_grid, plot_curves_with_band
+from mcrl.analysis.plots import arm_colors, curves_by_config, figure_to_png, has_data, panel_grid, plot_curves_with_band
+from mcrl.analysis.reward_curves import reward_section
 from mcrl.analysis.runs import Run
 from mcrl.analysis.verdicts import level
 from mcrl.analysis.stats import (
     MIN_SEEDS_FOR_VERDICT,
-    align_curves,
     minimum_detectable_difference,
     probability_of_improvement,
     seeds_to_detect,
@@ -77,17 +77,6 @@ def summary(exp: Experiment) -> list[Block]:
     ])]
 
 
-def _curves_by_config(series: Sequence[tuple[str, dict[str, np.ndarray]]], col: str) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """(config key, CSV columns) per run -> (step grid, {config key: curves (n_runs, n_grid)})."""
-    grid, curves = align_curves([(cols["step"], cols[col]) for _, cols in series])
-    keys = [k for k, _ in series]
-    return grid, {k: curves[[i for i, kk in enumerate(keys) if kk == k]] for k in dict.fromkeys(keys)}
-
-
-def _colors(exp: Experiment) -> dict[str, str]:
-    return {g.key: COLORS[i % len(COLORS)] for i, g in enumerate(exp.configs)}
-
-
 def _curve_source(r: Run, col: str) -> dict[str, np.ndarray]:
     """The columns a curve of `col` comes from: metrics.csv for the intrinsic weight, eval.csv for the rest."""
     return r.metrics if col == "intrinsic_alpha" else r.eval if r.has_eval else {}
@@ -100,13 +89,13 @@ def _learning_curves(exp: Experiment) -> list[Block]:
     if moving:
         panels.insert(1, ("intrinsic_alpha", "intrinsic weight alpha in force", "alpha"))
     fig, axes = panel_grid(len(panels), ncols=len(panels))
-    colors = _colors(exp)
+    colors = arm_colors([g.key for g in exp.configs])
     for ax, (col, title, ylabel) in zip(axes, panels):
         for peers, style in ((False, "-"), (True, "--")):  # reference arms dashed
             series = [(g.key, _curve_source(r, col)) for g in exp.configs if bool(g.peer) == peers
                       for r in g.runs if has_data(_curve_source(r, col), col)]
             if series or not peers:
-                grid, by_cfg = _curves_by_config(series, col)
+                grid, by_cfg = curves_by_config(series, col)
                 plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED,
                                       linestyle=style)
     partial = sum(r.status == "partial" and r.has_eval for r in exp.runs)
@@ -282,40 +271,6 @@ def _detectable(exp: Experiment, claims: ReportClaims | None = None) -> list[Blo
     ]
 
 
-def _mc_section(exp: Experiment) -> list[Block]:
-    out: list[Block] = [Heading(2, "MC reward and raw KL during training")]
-    groups = [g for g in exp.configs if any(has_data(r.metrics, "mean_intrinsic_reward") for r in g.runs)]
-    if not groups:
-        return out + [Paragraph("No run has MC reward data (metrics.csv `mean_intrinsic_reward` is empty: no MC models).")]
-    colors = _colors(exp)
-    fig, axes = panel_grid(2)
-    cols = ("mean_intrinsic_reward", "mean_raw_kl")
-    for ax, col, title, ylabel in zip(axes, cols, ("mean MC reward (normalised)", "mean raw KL"), ("reward", "nats")):
-        series = [(g.key, r.metrics) for g in groups for r in g.runs if has_data(r.metrics, col)]
-        grid, by_cfg = _curves_by_config(series, col)
-        plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED)
-
-    def last_mean(g: ConfigGroup, col: str) -> float | None:
-        """Mean over seeds of each run's last logged value of ``col``."""
-        v = [r.metrics[col][np.isfinite(r.metrics[col])][-1] for r in g.runs if has_data(r.metrics, col)]
-        return float(np.mean(v)) if v else None
-
-    rows = [[name(g), num(g.intrinsic_alpha, 2), g.intrinsic, num(last_mean(g, cols[0]), 4),
-             num(last_mean(g, cols[1] if g.intrinsic == "mc" else "mean_raw_intrinsic"), 4)] for g in groups]
-    return out + [
-        Paragraph("The MC reward added to the replay batches and the raw per-transition KL (nats) it is normalised "
-              f"from, per configuration (mean over seeds, 95% bootstrap band where >= {MIN_SEEDS_FOR_VERDICT} seeds have "
-              "the point), like the thesis' Fig. 4.7. As the "
-              "thesis notes, the MC reward is relative (normalised by percentiles of past KL values): compare "
-              "its course over training, not its level, across tasks. An arm with another intrinsic reward "
-              "(RND, ICM, Disagreement) logs its normalised reward in the same column and its own raw value "
-              "(docs/intrinsic.md): prediction error or ensemble variance, not a KL."),
-        Figure("mc_reward_kl.png", figure_to_png(fig), "MC reward and raw KL from metrics.csv."),
-        Table(["configuration", "intrinsic_alpha", "intrinsic", "last mean intrinsic reward (mean over seeds)",
-               "last mean raw KL (nats) or raw intrinsic value"], rows),
-    ]
-
-
 def _missing_section(exp: Experiment) -> list[Block]:
     out: list[Block] = [Heading(2, "Missing and unfinished runs")]
     bad = [(g, r) for g in exp.configs for r in g.runs if r.status != "finished" or r.final is None]
@@ -380,4 +335,4 @@ def results(exp: Experiment, claims: ReportClaims | None = None) -> list[Block]:
     """The sections after the verdicts and the thesis' comparison: final numbers, curves, effect sizes, what the
     seeds can detect, critics, the MC reward, every seed, and what is missing."""
     return (_final_table(exp) + _learning_curves(exp) + _robust_stats(exp) + _detectable(exp, claims)
-            + _critic_section(exp) + _mc_section(exp) + _per_seed_table(exp) + _missing_section(exp))
+            + _critic_section(exp) + reward_section(exp) + _per_seed_table(exp) + _missing_section(exp))

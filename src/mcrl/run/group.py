@@ -26,7 +26,7 @@ import numpy as np
 
 from mcrl.algo import diagnostics
 from mcrl.algo.diagnostics import Diagnostics
-from mcrl.algo.metrics import INTRINSIC_METRICS
+from mcrl.algo.metrics import reported
 from mcrl.algo.sac import Agent, Batch, Hyper, Mix, TrainState
 from mcrl.config import Config
 from mcrl.errors import MCRLError
@@ -132,7 +132,8 @@ class GroupLearner:
         """Run `i`'s own state and diagnostics (a SAC run's without the ballast and its metrics)."""
         s, d = take(self.state, i), take(self.diag, i)
         if self.cfg.use_intrinsic_models and self.own[i] is None:
-            sums = {k: (jnp.float32(0) if k in INTRINSIC_METRICS else v) for k, v in d.metric_sums.items()}
+            sac = reported(None)  # what a SAC run reports; the ballast's intrinsic sums, a reward's own too, are 0
+            sums = {k: (v if k in sac else jnp.float32(0)) for k, v in d.metric_sums.items()}
             s = s._replace(intrinsic=None, norm=None)
             d = Diagnostics(sums, d.metric_count, jnp.zeros(2, jnp.float32))
         return s, d

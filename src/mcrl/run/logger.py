@@ -11,10 +11,13 @@ __all__ = ["RunLogger", "METRIC_COLUMNS", "EVAL_COLUMNS"]
 
 
 class RunLogger:
-    def __init__(self, run_dir: Path, resume_step: int | None = None, tensorboard: bool = True):
+    def __init__(self, run_dir: Path, resume_step: int | None = None, tensorboard: bool = True,
+                 metric_columns: tuple[str, ...] = METRIC_COLUMNS):
+        """`metric_columns`: metrics.csv's, those of the run's reward (`rundir.metric_columns`)."""
         self.run_dir = Path(run_dir)
         self.metrics_path, self.eval_path = self.run_dir / rundir.METRICS, self.run_dir / rundir.EVAL
-        for path, cols in ((self.metrics_path, METRIC_COLUMNS), (self.eval_path, EVAL_COLUMNS)):
+        self.metric_columns = metric_columns
+        for path, cols in ((self.metrics_path, metric_columns), (self.eval_path, EVAL_COLUMNS)):
             if resume_step is None or not path.exists():
                 rundir.start_csv(path, cols)
             else:  # rows after the checkpoint are written again by the resumed run
@@ -26,7 +29,7 @@ class RunLogger:
             self.tb = SummaryWriter(str(self.run_dir), purge_step=resume_step)
 
     def log_metrics(self, row: dict) -> None:
-        rundir.append_row(self.metrics_path, METRIC_COLUMNS, row)
+        rundir.append_row(self.metrics_path, self.metric_columns, row)
         if self.tb is not None:
             for k, v in row.items():
                 # eval_* repeat the last evaluation on every row: `log_eval` writes each evaluation once, at its own

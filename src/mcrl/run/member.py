@@ -63,7 +63,8 @@ class Member:
         self.lock = lock  # held until `close`
         self.rng = rng  # warm-up actions and replay sampling
         self.progress = progress
-        self.log = RunLogger(run_dir, resume_step=progress.step if resumed else None)
+        self.log = RunLogger(run_dir, resume_step=progress.step if resumed else None,
+                             metric_columns=rundir.metric_columns(agent.about.metrics))
         self.evaluator = Evaluator(cfg, agent)
         self.obs: np.ndarray | None = None  # the flat observation the next action answers
         self.ep_return = 0.0
@@ -195,7 +196,7 @@ def open_member(cfg: Config, run_dir: Path | str | None, resume: bool) -> tuple[
                 ckpt = None  # killed before its first checkpoint: start over in the same directory
         rng = np.random.default_rng(cfg.seed)
         if ckpt is None:
-            state, diag, progress = agent.init(cfg.seed), diagnostics.init(), Progress()
+            state, diag, progress = agent.init(cfg.seed), diagnostics.init(agent.about.metrics), Progress()
         else:
             state, diag, meta = restore_run(cfg, agent, ckpt)
             arrays = checkpoint.load_buffer_arrays(ckpt) if meta["has_buffer"] else None

@@ -46,7 +46,7 @@ def restore_run(cfg: Config, agent: Agent, ckpt: Path) -> tuple[TrainState, Diag
     (its normaliser from normaliser.npz; diagnostics start at zero where the checkpoint has none)."""
     meta = checkpoint.load_meta(ckpt)
     template = agent.init(cfg.seed)
-    state, diag = checkpoint.restore_state(ckpt, template._replace(norm=None), diagnostics.init())
+    state, diag = checkpoint.restore_state(ckpt, template._replace(norm=None), diagnostics.init(agent.about.metrics))
     if template.norm is not None:
         packed = checkpoint.load_extra(ckpt, "normaliser")
         if packed is None:

@@ -4,7 +4,7 @@
 Each frame shows the scene and, under it, the episode's per-step raw intrinsic reward (MC: the KL in nats),
 the normalised intrinsic reward, the extrinsic reward, the mixed reward at the intrinsic weight in force (its row
 names the weight: the run's schedule gives it, `mcrl.algo.schedule`) and success, with a cursor at the current
-step; the rows are named after the reward the run used (`IntrinsicReward.title`, `.raw_label`). The raw values
+step; the rows are named after the reward the run used (its `About`'s `title` and `raw_label`). The raw values
 are computed by the run's own intrinsic models (`IntrinsicReward.reward`) from the recorded (s, a, s') of the very
 episode shown, and normalised by `mcrl.algo.normaliser.reward` with the run's own normaliser history, exactly as
 the agent's reward would have been. A run without intrinsic models (plain SAC) shows the extrinsic reward alone.
@@ -54,11 +54,11 @@ def intrinsic_timeline(cfg: Config, agent: Agent, state: TrainState, flat_obs: n
     raw = net.reward(models.params, models.untrained, s, jnp.asarray(actions), s_next)
     r_int, _ = normaliser.reward(state.norm, raw, cfg.min_percentile, cfg.max_percentile, cfg.intrinsic_reward_low,
                                  cfg.intrinsic_reward_high)
-    return {net.raw_label: np.asarray(raw, np.float64), _normalised(net): np.asarray(r_int, np.float64)}
+    return {agent.about.raw_label: np.asarray(raw, np.float64), _normalised(agent): np.asarray(r_int, np.float64)}
 
 
-def _normalised(net) -> str:
-    return f"{net.title} reward (normalised)"
+def _normalised(agent: Agent) -> str:
+    return f"{agent.about.title} reward (normalised)"
 
 
 def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int, act=None,
@@ -86,7 +86,7 @@ def record_episode(cfg: Config, agent: Agent, state: TrainState, env, seed: int,
     series["extrinsic reward"] = ep["rewards"]
     if state.intrinsic is not None:  # the reward the agent learns from, at the weight in force (the row says which)
         a = cfg.intrinsic_alpha if alpha is None else alpha
-        r_int = series[_normalised(agent.intrinsic_net)]
+        r_int = series[_normalised(agent)]
         series[f"mixed reward, alpha {a:.3g}"] = (1.0 - a) * ep["rewards"] + a * r_int
     ep["series"] = series
     ep["flat_obs"], ep["policy_actions"] = flat, np.stack(policy_actions)
