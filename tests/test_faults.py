@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mcrl import files
 from mcrl.cli import main
 from mcrl.config import resolve_config
 from mcrl.errors import MCRLError
@@ -297,7 +298,7 @@ def test_a_full_disk_during_a_log_row_leaves_no_torn_row(disk_reference, tmp_pat
             return Torn(f)  # the row of step 500, after step 400's checkpoint
         return f
 
-    monkeypatch.setattr(rundir, "open", fake_open, raising=False)
+    monkeypatch.setattr(files, "open", fake_open, raising=False)  # the one CSV row writer's
     rc = main(_disk_args(run))
     err = capsys.readouterr().err.strip()
     monkeypatch.undo()

@@ -23,13 +23,13 @@ import dataclasses
 import io
 import json
 import math
-import os
 import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+import mcrl.files as files
 from mcrl.algo.metrics import BOUNDS, UPDATE_METRICS
 from mcrl.config import PRESETS, Config, resolve_config
 from mcrl.errors import MCRLError
@@ -60,6 +60,13 @@ TIMING_COLUMNS = ("time_s", "steps_per_s")  # wall-clock: the only columns that 
 LEARNING_COLUMNS = tuple(c for c in METRIC_COLUMNS if c not in TIMING_COLUMNS)
 
 
+def metric_columns(own: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """metrics.csv's columns of a run whose reward reports `own` (`mcrl.algo.intrinsic.About.metrics`):
+    `METRIC_COLUMNS`, the layout of every built-in reward's runs, then the names of `own` it lacks, in their order
+    (as `mcrl.algo.metrics.update_metrics` sums them)."""
+    return (*METRIC_COLUMNS, *(k for k in own if k not in METRIC_COLUMNS))
+
+
 # ----------------------------------------------------------------------------- JSON
 def read_json(path: str | Path, strict: bool = False) -> dict[str, Any]:
     """A JSON object, or {} when the file is missing, unreadable or not an object (a run still being written).
@@ -77,15 +84,15 @@ def read_json(path: str | Path, strict: bool = False) -> dict[str, Any]:
     return obj if isinstance(obj, dict) else {}
 
 
+# how the run's JSON files are laid out (`mcrl.files.write_json`'s options): config.json for people to read, the
+# others (final_eval.json, done) on one line
+JSON_LAYOUT = {CONFIG: {"indent": 2, "sort_keys": True}}
+
+
 def write_json_atomic(path: str | Path, obj: dict[str, Any]) -> None:
-    """Write `obj` so that a reader sees the old file or the new one, never half of one."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        f.write(json.dumps(obj, indent=2, sort_keys=True) if path.name == CONFIG else json.dumps(obj))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """Write one of the run's JSON files in its layout (`JSON_LAYOUT`) with the one atomic writer: a reader sees
+    the old file or the new one, never half of one."""
+    files.write_json(path, obj, **JSON_LAYOUT.get(Path(path).name, {}))
 
 
 def read_config(run_dir: str | Path) -> Config:
@@ -113,13 +120,7 @@ def read_summary(run_dir: str | Path) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- CSV
-def _number(cell: str | None) -> float | None:
-    if cell in ("", None):
-        return None
-    try:
-        return float(cell)
-    except ValueError:
-        return None
+_number = files.number  # a cell's number, None for an empty cell
 
 
 def read_rows(path: str | Path) -> list[dict[str, float | None]]:
@@ -158,31 +159,24 @@ def _whole_rows(path: Path) -> list[dict[str, str]]:
 
 
 def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
-    """Keep the header and the whole rows with step <= max_step (a resumed run writes the later rows again);
-    the file is replaced atomically, so a failure here leaves it as it was."""
+    """Keep the header and the whole rows with step <= max_step (a resumed run writes the later rows again), in
+    `columns` (a column the file has and `columns` lacks, e.g. a metric its reward no longer reports, is left
+    out); the file is replaced atomically, so a failure here leaves it as it was."""
     if not path.exists():
         return
     rows = [new_names(r)  # a run from before a rename: today's names
             for r in _whole_rows(path) if _number(r.get("step")) is not None and _number(r["step"]) <= max_step]
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=columns)
-        w.writeheader()
-        w.writerows(rows)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    files.write_csv(path, columns, [{k: v for k, v in r.items() if k in columns} for r in rows])
 
 
 def start_csv(path: Path, columns: tuple[str, ...]) -> None:
-    with open(path, "w", newline="") as f:
-        csv.DictWriter(f, fieldnames=columns).writeheader()
+    """A new CSV of the run holding its header (atomically)."""
+    files.write_csv(path, columns)
 
 
 def append_row(path: Path, columns: tuple[str, ...], row: dict[str, Any]) -> None:
-    with open(path, "a", newline="") as f:
-        csv.DictWriter(f, fieldnames=columns, extrasaction="ignore").writerow(
-            {k: ("" if row.get(k) is None else row[k]) for k in columns})
+    """One row of the run's CSV, appended and fsynced (`mcrl.files.append_row`)."""
+    files.append_row(path, columns, row)
 
 
 def video_path(run_dir: str | Path, kind: str, step: int, fmt: str) -> Path:
@@ -216,10 +210,7 @@ def latest_checkpoint(run_dir: str | Path) -> str | None:
 
 def write_latest(run_dir: str | Path, name: str) -> None:
     """Point `latest` at checkpoint `name`, atomically."""
-    root = checkpoint_root(run_dir)
-    tmp = root / f".{LATEST}.tmp"
-    tmp.write_text(name)
-    os.replace(tmp, root / LATEST)
+    files.write_atomic(checkpoint_root(run_dir) / LATEST, name)
 
 
 # ----------------------------------------------------------------------------- names
