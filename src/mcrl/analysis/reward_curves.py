@@ -78,7 +78,9 @@ def reward_section(exp: Experiment) -> list[Block]:
     if not groups:
         return out + [Paragraph(words.empty)]
     colors = arm_colors([g.key for g in exp.configs])
-    panels = [(NORMALISED, words.normalised, "reward", groups)] + [
+    # the thesis' words name MC's reward; the panel names the reward it holds (MC's alone, or every arm's)
+    normalised = words.normalised if len(order) == 1 else "mean intrinsic reward (normalised)"
+    panels = [(NORMALISED, normalised, "reward", groups)] + [
         (a.raw_metric, f"{a.title}: mean {a.raw_label}", "raw value", [g for g in groups if g.intrinsic == n])
         for n, a in ((n, about(n)) for n in order)]
     fig, axes = panel_grid(len(panels))
