@@ -11,8 +11,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -22,6 +20,7 @@ from mcrl.errors import MCRLError
 from mcrl.run import rundir
 
 sys.path.insert(0, str(Path(__file__).parent))
+from test_intrinsic import Toy as LinearToy  # noqa: E402  (the fifth reward of tests/test_intrinsic.py)
 from test_report import _row, _section  # noqa: E402  (reading a report's Markdown)
 
 TOY = intrinsic.About("Toy", "SAC+Toy", metrics=("toy_energy",), raw_metric="toy_energy",
@@ -29,25 +28,15 @@ TOY = intrinsic.About("Toy", "SAC+Toy", metrics=("toy_energy",), raw_metric="toy
 
 
 @dataclass(frozen=True)
-class Toy(intrinsic.Sizes):
-    """A linear model's squared error predicting s' from (s, a), reported as a metric no built-in reward has; one
+class Toy(LinearToy):
+    """test_intrinsic's linear model, reporting its squared error as a metric no built-in reward has; one
     batch-mean value a step into the normaliser's history."""
 
     about: ClassVar[intrinsic.About] = TOY
 
-    def init(self, key):
-        return {"w": 0.01 * jax.random.normal(key, (self.state_dim + self.action_dim, self.state_dim))}, {}
-
-    def reward(self, params, untrained, s, a, s_next):
-        return jnp.square(jnp.concatenate([s, a], -1) @ params["w"] - s_next).mean(-1)
-
     def step(self, params, untrained, s, a, s_next, key):
-        def loss(p):
-            err = self.reward(p, untrained, s, a, s_next)
-            return err.mean(), err
-
-        (value, err), grads = jax.value_and_grad(loss, has_aux=True)(params)
-        return intrinsic.Raw(err, grads, untrained, {"toy_energy": err.mean()}, err.mean()[None])
+        out = super().step(params, untrained, s, a, s_next, key)
+        return out._replace(metrics={"toy_energy": out.raw.mean()}, history=out.raw.mean()[None])
 
 
 @pytest.fixture
