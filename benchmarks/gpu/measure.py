@@ -35,7 +35,7 @@ from pathlib import Path
 import analyse
 import procs
 
-# Equivalence (docs/performance.md, "GPU"), rows logged every step, |x - y| <= atol + rtol * max(|x|, |y|):
+# Equivalence (benchmarks/gpu/README.md, "Equivalence"), rows logged every step, |x - y| <= atol + rtol * max(|x|, |y|):
 # - first gradient step: the same initial state and batch, so only the device's float32 arithmetic differs;
 #   tight, except what the percentile normaliser makes of it (its 24-bit histogram bins are 2**-16 relative
 #   wide, and the first step's bounds are close together, so a bin crossed moves the MC reward by up to ~1e-3);

@@ -82,7 +82,7 @@ def _provenance(prov: dict[str, object]) -> list[str]:
 
 
 def _sweep_call(i: int, c: object) -> str:
-    """'sweep call 1: `mcrl sweep ...`, started 2026-12-03T10:00:00+00:00, ended ...; mcrl 0.1.0, commit
+    """'sweep call 1: `mcrl sweep ...`, started 2026-12-03T10:00:00+00:00, ended ...; mcrl 0.2.0, commit
     `5c418ac...`; machine `AMD EPYC ..., 2 cores` (host `box`)'."""
     if not isinstance(c, dict):
         return f"sweep call {i}: {code(str(c))}"

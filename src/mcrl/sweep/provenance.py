@@ -4,7 +4,7 @@
 end time when the call returns or fails, so a sweep killed outright keeps an entry whose ``"ended"`` is null::
 
     {"sweeps": [{"command": "mcrl sweep --preset fetchreach-sac --alphas 0,0.2 --seeds 2 --exp exp/local",
-                 "mcrl": "0.1.0", "commit": "5c418ac...", "dirty": false,
+                 "mcrl": "0.2.0", "commit": "5c418ac...", "dirty": false,
                  "machine": "AMD EPYC 9R14, family 25 model 17, 2 cores", "host": "box",
                  "started": "2026-12-03T10:00:00+00:00", "ended": "2026-12-03T10:20:41+00:00"}, ...]}
 
