@@ -12,12 +12,6 @@ from mcrl.analysis.plots import has_data
 from mcrl.files import number
 
 
-def _number(v: Any) -> float | None:
-    """A finite number of final_eval.json as float (`mcrl.files.number`); None for null, booleans, non-numbers
-    and non-finite values."""
-    return number(v, finite=True)
-
-
 @dataclass
 class Run:
     """One run (of the sweep, or a reference arm) and what it has written so far."""
@@ -42,7 +36,7 @@ class Run:
 
     @property
     def _final_from_json(self) -> bool:
-        return _number(self.final_eval.get("mean_return")) is not None
+        return number(self.final_eval.get("mean_return"), finite=True) is not None
 
     @property
     def final(self) -> tuple[float, float] | None:
@@ -54,7 +48,7 @@ class Run:
         if self.status != "finished":
             return None
         if self._final_from_json:
-            s = _number(self.final_eval.get("success_rate"))
+            s = number(self.final_eval.get("success_rate"), finite=True)
             return (math.nan if s is None else s), float(self.final_eval["mean_return"])
         if not self.has_eval:
             return None
@@ -67,7 +61,7 @@ class Run:
         if self.final is None:
             return None
         if self._final_from_json:
-            n = _number(self.final_eval.get("episodes"))
+            n = number(self.final_eval.get("episodes"), finite=True)
         else:
             eps = self.eval.get("episodes")
             n = float(eps[-1]) if eps is not None and eps.size and np.isfinite(eps[-1]) else None

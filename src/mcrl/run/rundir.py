@@ -120,9 +120,6 @@ def read_summary(run_dir: str | Path) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- CSV
-_number = files.number  # a cell's number, None for an empty cell
-
-
 def read_rows(path: str | Path) -> list[dict[str, float | None]]:
     """Rows of a run's CSV as dicts of floats (None for empty cells), columns in today's names
     (`mcrl.renames`); [] for a missing file."""
@@ -130,7 +127,7 @@ def read_rows(path: str | Path) -> list[dict[str, float | None]]:
     if not p.is_file():
         return []
     with p.open(newline="") as f:
-        return [new_names({k: _number(v) for k, v in r.items() if k is not None}) for r in csv.DictReader(f)]
+        return [new_names({k: files.number(v) for k, v in r.items() if k is not None}) for r in csv.DictReader(f)]
 
 
 def read_columns(path: str | Path) -> dict[str, np.ndarray]:
@@ -165,7 +162,7 @@ def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
     if not path.exists():
         return
     rows = [new_names(r)  # a run from before a rename: today's names
-            for r in _whole_rows(path) if _number(r.get("step")) is not None and _number(r["step"]) <= max_step]
+            for r in _whole_rows(path) if files.number(r.get("step")) is not None and files.number(r["step"]) <= max_step]
     files.write_csv(path, columns, [{k: v for k, v in r.items() if k in columns} for r in rows])
 
 

@@ -79,13 +79,13 @@ def merged_grid_and_set(old: dict | None, plan: SweepPlan) -> tuple[dict, dict]:
     ``grid`` lists every value each key took across the merged sweeps; a ``set`` key stays fixed only where both
     fix it to the same value, otherwise it joins the grid (a side that left it unset ran the preset's default).
     The ``runs`` list stays the record of each run's own overrides."""
-    def as_stored(d: dict) -> dict:  # a sweep.json from before a rename: today's names (mcrl.renames)
+    def todays_names(d: dict) -> dict:  # a sweep.json from before a rename: today's names (mcrl.renames)
         return jsonable(new_names(d))
 
-    new_grid, new_set = as_stored(plan.grid), as_stored(plan.fixed)
+    new_grid, new_set = todays_names(plan.grid), todays_names(plan.fixed)
     if old is None:
         return new_grid, new_set
-    old_grid, old_set = as_stored(old.get("grid") or {}), as_stored(old.get("set") or {})
+    old_grid, old_set = todays_names(old.get("grid") or {}), todays_names(old.get("set") or {})
     grid: dict[str, list] = {}
 
     def add(key: str, values: list) -> None:
