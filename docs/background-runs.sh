@@ -47,16 +47,24 @@ check_not_ignored() {
   fi
 }
 
-# arm_status NAME WORK COMMITTED: finished and committed runs, then each run in progress at its last logged step
+# arm_status NAME WORK COMMITTED: finished and committed runs, then each run in progress at its last logged step,
+# with its speed over its last ten logged rows and the time left at that speed (the final evaluation not counted)
 arm_status() {
   echo "$1: $(ls -d "$2"/runs/*/done 2>/dev/null | wc -l) finished;" \
        "$(ls -d "$3"/runs/*/done 2>/dev/null | wc -l) committed"
-  local d s
+  local d total
   for d in "$2"/runs/*/; do
     if [ ! -f "$d/done" ] && [ -f "$d/metrics.csv" ]; then
-      s="$(tail -1 "$d/metrics.csv" | cut -d, -f1)"
-      [ "$s" = step ] && s="0 (no row logged yet)"  # only the header so far
-      echo "  in progress: $1/$(basename "$d") at step $s"
+      total="$(sed -n 's/.*"total_steps": *\([0-9]*\).*/\1/p' "$d/config.json" 2>/dev/null | head -1)"
+      # columns 1 and 2 are step and time_s; a resume restarts time_s, so only rows after the last drop count
+      tail -n 11 "$d/metrics.csv" | awk -F, -v name="$1/$(basename "$d")" -v t="${total:-0}" '
+        $1 == "step" { next }
+        { if (n && $2 < t1) n = 0; if (!n) { s0 = $1; t0 = $2 } s1 = $1; t1 = $2; n++ }
+        END {
+          if (!n) { printf "  in progress: %s at step 0 (no row logged yet)\n", name; exit }
+          printf "  in progress: %s at step %d of %s", name, s1, (t ? t : "?")
+          if (n > 1 && t1 > t0 && t > s1) { r = (s1 - s0) / (t1 - t0); printf ", %.0f steps/s: %.0f min left", r, (t - s1) / r / 60 }
+          printf "\n" }'
     fi
   done
 }
