@@ -162,7 +162,7 @@ def truncate_rows(path: Path, columns: tuple[str, ...], max_step: int) -> None:
     if not path.exists():
         return
     rows = [new_names(r)  # a run from before a rename: today's names
-            for r in _whole_rows(path) if files.number(r.get("step")) is not None and files.number(r["step"]) <= max_step]
+            for r in _whole_rows(path) if (step := files.number(r.get("step"))) is not None and step <= max_step]
     files.write_csv(path, columns, [{k: v for k, v in r.items() if k in columns} for r in rows])
 
 
