@@ -1,5 +1,6 @@
-# Shared by the run.sh scripts of long experiments (docs/reproduction/fetchpush, docs/intrinsic/fetchpush):
-# install one fixed commit, bring committed runs back, sync finished runs into git, report progress.
+# Shared by the run.sh scripts of long experiments (docs/*/*/run.sh: reproduction, intrinsic, confirmatory,
+# schedule, AntMaze): install one fixed commit, bring committed runs back, sync finished runs into git, report
+# progress.
 # Sourced, not run; every function takes its directories as arguments.
 
 # this machine, as recorded in provenance.json and in each newly finished run's machine.json
@@ -65,8 +66,23 @@ arm_status() {
           printf "  in progress: %s at step %d of %s", name, s1, (t ? t : "?")
           if (n > 1 && t1 > t0 && t > s1) { r = (s1 - s0) / (t1 - t0); printf ", %.0f steps/s: %.0f min left", r, (t - s1) / r / 60 }
           printf "\n" }'
+      run_footprint "$d"
     fi
   done
+}
+
+# run_footprint RUNDIR: the memory of the process that holds the run's lock (resident now and at its peak, the
+# replay buffer most of it) and the size of its checkpoints, as issue 68 asks of the AntMaze runs
+run_footprint() {
+  local lock pid ckpt
+  lock="$(cd "$1" && pwd)/.lock"
+  pid="$(find /proc/[0-9]*/fd -maxdepth 1 -lname "$lock" 2>/dev/null | head -1 | cut -d/ -f3 || true)"
+  ckpt="$(du -sm "$1/checkpoints" 2>/dev/null | cut -f1 || true)"
+  [ -n "$pid" ] || [ -n "$ckpt" ] || return 0
+  printf "    "
+  [ -z "$pid" ] || awk '/^VmRSS/ { r = $2 } /^VmHWM/ { h = $2 }
+    END { printf "process %d MiB resident (peak %d MiB), ", r / 1024, h / 1024 }' "/proc/$pid/status"
+  echo "checkpoints ${ckpt:-0} MiB"
 }
 
 # write_provenance WORK COMMIT COMMAND RERUN_ONE_SEED: provenance.json of a sweep's directory, once the sweep
