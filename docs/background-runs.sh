@@ -71,8 +71,9 @@ arm_status() {
   done
 }
 
-# run_footprint RUNDIR: the memory of the process that holds the run's lock (resident now and at its peak, the
-# replay buffer most of it) and the size of its checkpoints, as issue 68 asks of the AntMaze runs
+# run_footprint RUNDIR: the memory of the process that holds the run's lock (resident now and at its peak: the
+# replay buffer, the networks and the JAX runtime together) and the size of its checkpoints, as issue 68 asks of
+# the AntMaze runs
 run_footprint() {
   local lock pid ckpt
   lock="$(cd "$1" && pwd)/.lock"
