@@ -251,6 +251,25 @@ def test_an_arm_whose_claims_are_decided_runs_no_more_seeds(tmp_path):
     assert names[:4] == ["sac-s1000", "mc-s1000", "sac-s1001", "mc-s1001"] and len(names) == 16
 
 
+def test_the_looks_table_shows_each_looks_repeated_interval_while_continuing(tmp_path):
+    """The interval that stays valid whenever the experiment stops is shown at every look, not only at a decision:
+    a continuing claim's row carries the test-inverted shift interval at its efficacy bound, with its coverage."""
+    from mcrl.analysis.markdown import to_markdown
+    from mcrl.decide.look import shift_interval
+    from mcrl.decide.report import sequential_section
+    path = _plan(tmp_path, PLAN % ("holm", "pocock"))
+    mc, sac = [0.3, 0.5, 0.4, 0.6], [0.3, 0.4, 0.5, 0.6]
+    _finish_batch(path, 1, {"sac": sac, "mc": mc, "hi": [0.7, 0.8, 0.9, 0.95]})
+    c = runner.look(load_plan(path), commit="x")["claims"]["mc-better"]
+    assert c["decision"] == "continue"
+    lo, hi = shift_interval(mc, sac, c["upper"])
+    assert lo < 0 < hi  # the same finals: no shift is excluded
+    text = to_markdown(sequential_section(path.parent), tmp_path)
+    (row,) = [line for line in text.splitlines() if line.startswith("| 1 | mc-better |")]
+    assert f"[{lo:+.2f}, {hi:+.2f}] (92%)" in row and row.endswith("| continue |")
+    assert "not decided yet" in text
+
+
 def test_a_record_cut_short_by_a_crash_is_not_a_look(tmp_path):
     path = _plan(tmp_path, PLAN % ("holm", "pocock"))
     _finish_batch(path, 1, {"sac": [0.1, 0.3, 0.2, 0.4], "mc": [0.2, 0.25, 0.35, 0.15], "hi": [0.1, 0.2, 0.05, 0.3]})

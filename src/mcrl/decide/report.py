@@ -32,6 +32,12 @@ def _claim_words(plan: Plan, name: str) -> str:
     return f"{c.better} ends higher than {c.than}"
 
 
+def _interval(c: dict) -> str:
+    """A claim's repeated confidence interval of the shift at one look, with its coverage; "-" while none."""
+    rci = c.get("shift_rci")
+    return f"[{rci[0]:+.2f}, {rci[1]:+.2f}] ({1 - 2 * c['level']:.0%})" if rci else "-"
+
+
 def _decision_text(plan: Plan, look: dict, name: str) -> str:
     c = look["claims"][name]
     words = _claim_words(plan, name)
@@ -39,10 +45,7 @@ def _decision_text(plan: Plan, look: dict, name: str) -> str:
         return (f"{words}: not decided yet (look {look['look']}, {c['n_x']} v {c['n_y']} seeds: z {c['z']:+.2f}, "
                 f"continuing between {c['lower']:+.2f} and {c['upper']:.2f})" if c.get("lower") is not None else
                 f"{words}: not decided yet (look {look['look']}: z {c['z']:+.2f}, efficacy bound {c['upper']:.2f})")
-    rci = c.get("shift_rci")
-    conf = 1 - 2 * c["level"]
-    interval = (f"; {conf:.0%} repeated confidence interval of the shift [{rci[0]:+.2f}, {rci[1]:+.2f}]" if rci
-                else "")
+    interval = f"; repeated confidence interval of the shift {_interval(c)}" if c.get("shift_rci") else ""
     return (f"{words}: **{c['decision']}** at look {c['decided_at']} ({c['n_x']} v {c['n_y']} seeds; mean final "
             f"success {c['mean_x']:.2f} v {c['mean_y']:.2f}, difference {c['difference']:+.2f}{interval}; "
             f"{c['reason']}; level {c['level']:g} in force)")
@@ -123,14 +126,17 @@ def sequential_section(experiment_dir: str | Path) -> list[Block]:
                                "-" if c.get("lower") is None else f"{c['lower']:+.3f}",
                                "-" if c.get("upper") is None else f"{c['upper']:.3f}",
                                f"{c['level']:g}", f"{c['alpha_spent']:.4f}", f"{c['difference']:+.3f}",
+                               _interval(c),
                                f"{c['p_fixed_sample']:.4f}" if "p_fixed_sample" in c else "-", c["decision"]])
     if claim_rows:
         blocks += [Heading(3, "Looks"), Table(["look", "claim", "seeds", "z", "futility bound", "efficacy bound",
                                                 "level in force", "alpha spent", "difference of means",
+                                                "repeated confidence interval of the shift",
                                                 "fixed-sample p (naive)", "decision"], claim_rows),
                    Paragraph("The fixed-sample p ignores the looks and is shown for orientation only: the decision is "
-                             "z against the bounds. The repeated confidence interval (in the verdict) holds at every "
-                             "look at once, so it stays valid whenever the experiment stops.")]
+                             "z against the bounds. The repeated confidence interval of the shift (coverage 1 - 2 x "
+                             "the level in force, by inverting the rank-sum test at the look's efficacy bound) holds "
+                             "at every look at once, so it stays valid whenever the experiment stops.")]
     blocks.append(Figure("sequential_z.png", _z_plot(plan, looks),
                          "z of each claim at each look against its bounds (dashed: planned at the claim's own level)"))
     blocks += [Heading(3, "The plan"), Bullets([
