@@ -93,3 +93,25 @@ write_provenance() {
   printf '{"commit": "%s", "machine": "%s", "command": "%s", "rerun_one_seed": "%s"}\n' \
     "$2" "$(machine_name)" "$3" "$4" > "$1/provenance.json"
 }
+
+# on_free_cores N: "taskset -c LIST" naming N cores that no pinned mcrl process (one allowed fewer cores than this
+# shell) holds now, or nothing when fewer are free. The pinned commits these runs use (b5e5eda, 245cd0e) start
+# every sweep's first worker on the first core of its mask, so two sweeps side by side shared core 0 while core 1
+# idled (docs/performance.md#a-sweeps-workers-and-their-cores); given a mask of free cores, a sweep keeps to them.
+on_free_cores() {
+  local cores
+  cores="$(python3 - "$1" <<'PY'
+import os, sys
+mine, used = os.sched_getaffinity(0), set()
+for p in filter(str.isdigit, os.listdir("/proc")):
+    try:
+        if b"mcrl" in open(f"/proc/{p}/cmdline", "rb").read() and os.sched_getaffinity(int(p)) < mine:
+            used |= os.sched_getaffinity(int(p))
+    except OSError:  # gone, or not ours to read
+        pass
+free = sorted(mine - used)[: int(sys.argv[1])]
+print(",".join(map(str, free)) if len(free) == int(sys.argv[1]) else "")
+PY
+)"
+  [ -z "$cores" ] || echo "taskset -c $cores"
+}

@@ -493,6 +493,34 @@ def test_backend_choices_come_from_the_registry():
     assert tuple(sweep.choices) == backend.names() == ("local", "ray", "vmap")
 
 
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two cores to pass one over")
+def test_a_second_sweeps_worker_passes_over_a_core_another_worker_holds(tmp_path):
+    """Two sweeps side by side both start their first worker in slot 0: the second one's goes to the next free
+    core, not onto the first one's; with every core held it keeps its slot's core; a held core is free again when
+    its worker dies."""
+    mask = sorted(os.sched_getaffinity(0))
+    env = {**os.environ, "MCRL_CORE_CLAIMS": str(tmp_path / "claims")}
+    code = "import os, sys; from mcrl.sweep.worker import pin_cores; print(pin_cores(1, 0)); sys.stdout.flush(); "
+    holder = [subprocess.Popen([sys.executable, "-c", code + "sys.stdin.read()"], stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, text=True, env=env) for _ in mask]
+    try:
+        held = [json.loads(h.stdout.readline()) for h in holder]
+        assert sorted(c for cores in held for c in cores) == mask  # each takes its own core, though all are slot 0
+
+        def pinned() -> list[int]:
+            return json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                                             check=True).stdout)
+
+        assert pinned() == mask[:1]  # all held: the slot's own core
+        holder[-1].kill()
+        holder[-1].wait()
+        assert pinned() == held[-1]  # its claim died with it
+    finally:
+        for h in holder:
+            h.kill()
+            h.wait()
+
+
 def test_threads_per_run_pins_each_worker_to_its_slots_cores(tmp_path, monkeypatch):
     """`--threads-per-run N` binds each worker to N cores of its slot before jax loads (XLA sizes its pool by the
     cores a process may use); without it a worker keeps every core."""
@@ -506,7 +534,8 @@ def test_threads_per_run_pins_each_worker_to_its_slots_cores(tmp_path, monkeypat
     for threads, slot, expected in ((1, 0, mask[:1]), (1, 1, [mask[1 % len(mask)]]), (1, len(mask), mask[:1]),
                                     (len(mask), 3, mask)):
         out = subprocess.run([sys.executable, "-c", code, str(threads), str(slot)], capture_output=True, text=True,
-                             check=True).stdout.split(maxsplit=len(expected))
+                             check=True, env={**os.environ, "MCRL_CORE_CLAIMS": str(tmp_path / "claims")}
+                             ).stdout.split(maxsplit=len(expected))
         assert out[-1].strip() == "False" and json.loads(" ".join(out[:-1])) == expected
 
     specs = []

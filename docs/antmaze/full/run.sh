@@ -50,7 +50,7 @@ PY
     install_code "$REPO" "$CODE" "$COMMIT"
     restore_runs "$HERE" "$WORK"
     if pgrep -f "$SWEEP" > /dev/null; then echo "sweep already running (log $WORK.log)"; exit 0; fi
-    (trap '' HUP; exec nice -n 10 "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" --workers 1 --threads-per-run 1 --exp "$WORK" \
+    (trap '' HUP; exec $(on_free_cores 1) nice -n 10 "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" --workers 1 --threads-per-run 1 --exp "$WORK" \
        --no-progress) >> "$WORK.log" 2>&1 &
     echo "started the sweep (log $WORK.log)"
     [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" \

@@ -25,8 +25,8 @@ launch() {  # launch EXP FILE: start or resume the sweep of FILE into WORK/EXP
   install_code "$REPO" "$CODE" "$COMMIT"
   restore_runs "$HERE/$1" "$WORK/$1"
   if pgrep -f "$(sweep_of "$1")" > /dev/null; then echo "$1 already running (log $WORK/$1.log)"; return 0; fi
-  (trap '' HUP; exec nice -n 10 "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$2" --workers "$WORKERS" \
-     --threads-per-run 1 --exp "$WORK/$1" --no-progress) >> "$WORK/$1.log" 2>&1 &
+  (trap '' HUP; exec $(on_free_cores "$WORKERS") nice -n 10 "$CODE/.venv/bin/mcrl" sweep --file "$HERE/$2" \
+     --workers "$WORKERS" --threads-per-run 1 --exp "$WORK/$1" --no-progress) >> "$WORK/$1.log" 2>&1 &
   echo "started $1 (log $WORK/$1.log)"
   [ -f "$WORK/$1/provenance.json" ] || write_provenance "$WORK/$1" "$COMMIT" \
     "mcrl sweep --file docs/intrinsic/schedule/$2 --workers $WORKERS --threads-per-run 1 --exp EXP" \

@@ -11,7 +11,9 @@ intra_op_parallelism_threads=N``, do not keep XLA to N cores on jax 0.10: ``benc
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
+import tempfile
 import threading
 import time
 import traceback
@@ -43,19 +45,51 @@ def thread_env(threads: int, base: dict[str, str] | None = None) -> dict[str, st
     return {**env, "XLA_FLAGS": base["XLA_FLAGS"]} if base.get("XLA_FLAGS") else env
 
 
+_CLAIMS: list = []  # this process's core claims: open files whose flock lasts until the process ends
+
+
+def claims_dir() -> Path:
+    """Where workers claim their cores (one lock file a core), shared by every sweep on this machine:
+    $MCRL_CORE_CLAIMS, else <tmp>/mcrl-cores."""
+    return Path(os.environ.get("MCRL_CORE_CLAIMS") or Path(tempfile.gettempdir()) / "mcrl-cores")
+
+
+def _claim(cores: list[int]) -> bool:
+    """Take an exclusive flock on each core's lock file, all or none. The kernel drops the locks when this
+    process ends however it ends (kill -9 included), so a claim never outlives its worker."""
+    held = []
+    try:
+        claims_dir().mkdir(parents=True, exist_ok=True)
+        for c in cores:
+            f = open(claims_dir() / f"cpu{c}.lock", "a")
+            held.append(f)
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # taken by another worker, or no lock directory to write: no claim
+        for f in held:
+            f.close()
+        return False
+    _CLAIMS.extend(held)
+    return True
+
+
 def pin_cores(threads: int, slot: int) -> list[int]:
     """Bind this process to `threads` of the cores it may use: slot `slot`'s (slots 0, 1, ... take consecutive
     blocks, wrapping around when there are more slots than blocks); all of them when `threads` covers them. Call
     before jax is imported: XLA sizes its thread pool by these cores (so they also set the run's float results:
-    docs/algorithm.md, "Reproducibility and resume"). Returns the cores."""
+    docs/algorithm.md, "Reproducibility and resume"; which cores they are does not). Returns the cores.
+
+    A block another worker holds (a second sweep on the same machine, whose slot 0 is also the first block) is
+    passed over for the next free one, so two sweeps side by side do not share a core while another idles;
+    when every block is held, the slot's own block is used."""
     try:
         mask = sorted(os.sched_getaffinity(0))
     except (AttributeError, OSError):  # not Linux: no pinning
         return []
     if threads >= len(mask):
         return mask
-    start = (slot * threads) % len(mask)
-    cores = [mask[(start + i) % len(mask)] for i in range(threads)]
+    blocks = [[mask[(start + i) % len(mask)] for i in range(threads)]
+              for start in ((slot + k) * threads % len(mask) for k in range(-(-len(mask) // threads)))]
+    cores = next((b for b in blocks if _claim(b)), blocks[0])
     os.sched_setaffinity(0, cores)
     return cores
 
