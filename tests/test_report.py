@@ -596,6 +596,33 @@ def test_other_intrinsic_rewards_against_sac_and_sac_mc(tmp_path: Path) -> None:
     assert len(rows) == 4 and not any("better" in r or "worse" in r or "short" in r for r in rows)
 
 
+def test_a_scheduled_arm_is_compared_as_its_own_arm_not_as_its_starting_alpha(tmp_path: Path) -> None:
+    # A `success` schedule from 0.4 starts at the alpha curve's 0.4 but moves: it is no point of the thesis'
+    # fixed-alpha claims (issue 67), so it must not fill the curve's 0.4 row nor its 'about the same as SAC'
+    # claim; it is an arm of its own, compared with SAC (one-sided) and SAC-MC (two-sided) like a bonus.
+    arms = {"alpha=0": (0.0, {}, [0.10, 0.15, 0.20, 0.25, 0.30, 0.35]),
+            "alpha=0.2": (0.2, {}, [0.60, 0.65, 0.70, 0.75, 0.80, 0.85]),
+            "success": (0.4, {"intrinsic_schedule": "success"}, [0.61, 0.66, 0.71, 0.76, 0.81, 0.86])}
+    exp, runs = tmp_path / "exp", []
+    for key, (alpha, config, finals) in arms.items():
+        for seed, s in enumerate(finals):
+            name = f"{key}-s{seed}"
+            _write_run(exp / "runs" / name, alpha, seed, (s, -50 * (1 - s)), config=config)
+            runs.append({"name": name, "config_key": key, "seed": seed})
+    (exp / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": runs}))
+    md = write_report(exp, tmp_path / "rep").read_text()
+    curve = md[md.index("### The thesis' alpha curve"):md.index("**Caveats:**")]
+    assert _row(curve, "0.4")[2] == "not in this report" and "`success`" not in curve
+    assert "`success`" not in _section(md, "Comparison with the thesis (FetchPush)").split("### The thesis' alpha")[0]
+    sec = _section(md, "Other intrinsic rewards and schedules against SAC and SAC-MC")
+    # above all 6 SAC seeds: p = 1/924, Holm x2 over SAC's family (SAC-MC 0.2's claim and this one)
+    assert _row(sec, "`success` | `alpha=0`")[2:7] == ["6 / 6", "one-sided X > Y", "0.0011 (0.0022)",
+                                                      "1.0000 (1.0000)", "**better than SAC**"]
+    assert _row(sec, "`success` | `alpha=0.2`")[3] == "two-sided"
+    verdicts = _section(md, "Verdicts")
+    assert "issue 67: a schedule's claim" in verdicts and "SAC-MC 0.4 about the same" not in verdicts
+
+
 def test_arms_that_differ_only_in_the_reward_are_named_by_algorithm(tmp_path: Path) -> None:
     exp = _experiment(tmp_path / "exp", {0.0: FINALS["alpha=0"], 0.2: FINALS["alpha=0.2"]})
     arms, runs = tmp_path / "arms", []

@@ -79,19 +79,26 @@ def mcrl_groups(exp: Experiment) -> list[ConfigGroup]:
     return [g for g in exp.configs if g.peer is None]
 
 
+def is_scheduled(g: ConfigGroup) -> bool:
+    """Runs whose intrinsic weight moves during training (`intrinsic_schedule` other than constant). Their
+    intrinsic_alpha is only the weight they start from, so they are no point of the thesis' fixed-alpha claims or
+    curve: they are an arm of their own, compared like another intrinsic reward (:func:`other_intrinsic`)."""
+    return g.intrinsic_schedule != "constant"
+
+
 def sac_and_mc(exp: Experiment) -> tuple[list[ConfigGroup], list[ConfigGroup]]:
     """mcrl's finished SAC (intrinsic_alpha 0) and SAC-MC (intrinsic_alpha > 0 with the thesis' reward,
-    `THESIS_REWARD`) configurations."""
-    with_data = [g for g in mcrl_groups(exp) if g.finished and g.intrinsic_alpha is not None]
+    `THESIS_REWARD`) configurations, each at a constant weight."""
+    with_data = [g for g in mcrl_groups(exp) if g.finished and g.intrinsic_alpha is not None and not is_scheduled(g)]
     return ([g for g in with_data if g.intrinsic_alpha == 0.0],
             [g for g in with_data if g.intrinsic_alpha > 0.0 and g.intrinsic == THESIS_REWARD])
 
 
 def other_intrinsic(exp: Experiment) -> list[ConfigGroup]:
     """mcrl's finished configurations that mix in another intrinsic reward than the thesis' (RND, ICM,
-    Disagreement, any registered)."""
-    return [g for g in mcrl_groups(exp)
-            if g.finished and (g.intrinsic_alpha or 0.0) > 0.0 and g.intrinsic != THESIS_REWARD]
+    Disagreement, any registered), or any reward under a moving weight (:func:`is_scheduled`)."""
+    return [g for g in mcrl_groups(exp) if g.finished and (
+        is_scheduled(g) or ((g.intrinsic_alpha or 0.0) > 0.0 and g.intrinsic != THESIS_REWARD))]
 
 
 def reference_sac(exp: Experiment) -> list[ConfigGroup]:

@@ -55,6 +55,11 @@ class ConfigGroup:
         return None if v is None else float(v)
 
     @property
+    def intrinsic_schedule(self) -> str:
+        """How the intrinsic weight moves during training; `constant` where no run names one (older configs)."""
+        return str(self._setting("intrinsic_schedule") or "constant")
+
+    @property
     def intrinsic(self) -> str:
         """The intrinsic reward intrinsic_alpha mixes in; the config's default, the thesis' reward, where no run
         names one (configs older than the key)."""

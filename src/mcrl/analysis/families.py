@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcrl.analysis.cells import CONF, SEED, is_code_variant, other_intrinsic, reference_sac, sac_and_mc
+from mcrl.analysis.cells import CONF, SEED, is_code_variant, is_scheduled, other_intrinsic, reference_sac, sac_and_mc
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, ClaimTest, Verdict, claim_power, claim_test, decide
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.registry import ArmRuns, ArmSpec, FamilySpec, Registry
@@ -126,7 +126,8 @@ def candidates(exp: Experiment) -> list[Candidate]:
         else:  # no thesis numbers to test: the thesis' direction alone, at every alpha (no curve to follow either)
             out += [Candidate(x, y, "better", None, f"`{x.key}`", "the thesis' claim, on a task without its numbers")
                     for x in mc]
-        out += [Candidate(x, y, "better", d, f"`{x.key}`", "issue 29: an exploration bonus's claim") for x in others]
+        out += [Candidate(x, y, "better", d, f"`{x.key}`", "issue 67: a schedule's claim" if is_scheduled(x)
+                          else "issue 29: an exploration bonus's claim") for x in others]
         if y.peer is None:  # the thesis' alpha curve, against the SAC the thesis ran: mcrl's
             for x in mc:
                 a = next((a for a in curve if math.isclose(x.intrinsic_alpha or 0.0, a)), None)
@@ -134,7 +135,8 @@ def candidates(exp: Experiment) -> list[Candidate]:
                     kind = curve[a]["claim"]
                     out.append(Candidate(x, y, kind, margin if kind == "same" else d, f"SAC-MC alpha={a:g}",
                                          "thesis, section 4.1.3"))
-    out += [Candidate(x, z, "differs", d, f"`{x.key}`", "issue 29") for z in mc for x in others]
+    out += [Candidate(x, z, "differs", d, f"`{x.key}`", "issue 67" if is_scheduled(x) else "issue 29")
+            for z in mc for x in others]
     return out
 
 

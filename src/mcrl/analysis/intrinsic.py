@@ -18,7 +18,8 @@ and each comparison states the power its seeds had to detect a difference of d.
 
 from __future__ import annotations
 
-from mcrl.analysis.cells import interval, num, other_intrinsic, pvalue, reference_sac, sac_and_mc, steps, too_few
+from mcrl.analysis.cells import (interval, is_scheduled, num, other_intrinsic, pvalue, reference_sac, sac_and_mc, steps,
+                                 too_few)
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE, NOT_REPRODUCED, REPRODUCED
 from mcrl.analysis.experiment import Experiment
 from mcrl.analysis.families import ClaimResult, ReportClaims
@@ -71,13 +72,18 @@ def intrinsic_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
     sac, mc = sac_and_mc(exp)
     sacs = [*sac, *reference_sac(exp)]
     d = effect_of_interest(exp)
-    out: list[Block] = [Heading(2, "Other intrinsic rewards against SAC and SAC-MC")]
+    moving = any(is_scheduled(g) for g in arms)  # the words for schedules only where a report has one
+    out: list[Block] = [Heading(2, "Other intrinsic rewards " + ("and schedules " if moving else "")
+                                + "against SAC and SAC-MC")]
     missing = [what for what, have in (("SAC (intrinsic_alpha = 0)", sacs), ("SAC-MC (intrinsic=mc)", mc)) if not have]
     d_text = (f"d = {d:+.2f}, the thesis' gain of SAC-MC over SAC on this task" if d is not None
               else "no effect of interest is known for this task, so no 'short of' verdict and no power")
     out.append(Paragraph(
-        "Each arm with another intrinsic reward than MC is compared on the final success rate with every SAC arm "
-        "and every SAC-MC arm. Against SAC the claim an exploration bonus makes is tested one-sided (exact "
+        "Each arm with another intrinsic reward than MC"
+        + (", or whose weight moves during training (`intrinsic_schedule`)," if moving else "")
+        + " is compared on the final success rate with every SAC arm and every SAC-MC arm"
+        + (" (at a constant weight)" if moving else "") + ". Against SAC the claim an exploration bonus makes is "
+        "tested one-sided (exact "
         "rank-sum): 'better than SAC' when significant, 'short of SAC + d' when the arm falling short of SAC plus "
         f"d is ({d_text}), else 'not decidable'. Against SAC-MC no direction is declared: a two-sided exact "
         f"rank-sum test. Level {LEVEL}, Holm-adjusted over the family of the baseline (every claim against it; "
