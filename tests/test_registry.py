@@ -19,7 +19,7 @@ from mcrl.analysis.verdicts import verdict_section
 from mcrl.errors import MCRLError
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_report import _row, _section, _write_run  # noqa: E402  (the fake run directories of the report tests)
+from test_report import _row, _section, _sweep, _write_run  # noqa: E402  (the fake run directories of the report tests)
 
 SAC = [0.05, 0.1, 0.2, 0.3, 0.35, 0.5]
 SAC_MC = [0.4, 0.5, 0.6, 0.7, 0.75, 0.8]
@@ -40,17 +40,6 @@ families:
       - {x: RND, is: better, by: 0.23}
       - {x: SAC-MC 0.4, is: same, margin: 0.115}
 """
-
-
-def _sweep(exp: Path, arms: dict[str, tuple[float, dict, list[float]]]) -> Path:
-    runs = []
-    for key, (alpha, config, finals) in arms.items():
-        for seed, s in enumerate(finals):
-            name = f"{key}-s{seed}"
-            _write_run(exp / "runs" / name, alpha, seed, (s, -50 * (1 - s)), config=config)
-            runs.append({"name": name, "config_key": key, "seed": seed})
-    (exp / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": runs}))
-    return exp
 
 
 @pytest.fixture

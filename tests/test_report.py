@@ -64,6 +64,18 @@ def _write_run(run_dir: Path, alpha: float, seed: int, final: tuple[float, float
         (run_dir / "done").write_text("")
 
 
+def _sweep(exp: Path, arms: dict[str, tuple[float, dict, list[float]]]) -> Path:
+    """A sweep of fake runs: per arm key, (alpha, config.json keys, finals of seeds 0, 1, ...)."""
+    runs = []
+    for key, (alpha, config, finals) in arms.items():
+        for seed, s in enumerate(finals):
+            name = f"{key}-s{seed}"
+            _write_run(exp / "runs" / name, alpha, seed, (s, -50 * (1 - s)), config=config)
+            runs.append({"name": name, "config_key": key, "seed": seed})
+    (exp / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": runs}))
+    return exp
+
+
 @pytest.fixture
 def experiment(tmp_path: Path) -> Path:
     """Three finished seeds each of SAC and SAC-MC 0.2, one SAC seed unfinished, one SAC-MC seed never started."""
@@ -603,14 +615,7 @@ def test_a_scheduled_arm_is_compared_as_its_own_arm_not_as_its_starting_alpha(tm
     arms = {"alpha=0": (0.0, {}, [0.10, 0.15, 0.20, 0.25, 0.30, 0.35]),
             "alpha=0.2": (0.2, {}, [0.60, 0.65, 0.70, 0.75, 0.80, 0.85]),
             "success": (0.4, {"intrinsic_schedule": "success"}, [0.61, 0.66, 0.71, 0.76, 0.81, 0.86])}
-    exp, runs = tmp_path / "exp", []
-    for key, (alpha, config, finals) in arms.items():
-        for seed, s in enumerate(finals):
-            name = f"{key}-s{seed}"
-            _write_run(exp / "runs" / name, alpha, seed, (s, -50 * (1 - s)), config=config)
-            runs.append({"name": name, "config_key": key, "seed": seed})
-    (exp / "sweep.json").write_text(json.dumps({"preset": "fetchpush-test", "runs": runs}))
-    md = write_report(exp, tmp_path / "rep").read_text()
+    md = write_report(_sweep(tmp_path / "exp", arms), tmp_path / "rep").read_text()
     curve = md[md.index("### The thesis' alpha curve"):md.index("**Caveats:**")]
     assert _row(curve, "0.4")[2] == "not in this report" and "`success`" not in curve
     assert "`success`" not in _section(md, "Comparison with the thesis (FetchPush)").split("### The thesis' alpha")[0]
