@@ -19,7 +19,7 @@ from mcrl.analysis.verdicts import verdict_section
 from mcrl.errors import MCRLError
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_report import _row, _section, _sweep, _write_run  # noqa: E402  (the fake run directories of the report tests)
+from test_report import _row, _section, _sweep  # noqa: E402  (the fake run directories of the report tests)
 
 SAC = [0.05, 0.1, 0.2, 0.3, 0.35, 0.5]
 SAC_MC = [0.4, 0.5, 0.6, 0.7, 0.75, 0.8]
