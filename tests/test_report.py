@@ -166,7 +166,7 @@ def test_html_report_is_self_contained(experiment: Path, tmp_path: Path) -> None
     out = write_report(experiment, tmp_path / "html", fmt="html")
     assert [p.name for p in (tmp_path / "html").iterdir()] == ["report.html"]
     text = out.read_text()
-    assert text.count("data:image/png;base64,") == 3  # learning curves, alpha curve, MC reward
+    assert text.count("data:image/png;base64,") == 4  # learning curves, alpha curve, critics, MC reward
     assert "<td><code>alpha=0.2</code> &gt; <code>alpha=0</code></td>" in text
     assert "Missing and unfinished runs" in text
 
@@ -709,3 +709,35 @@ def test_step_axes_read_in_thousands() -> None:
     labels = [t.get_text() for t in ax.get_xticklabels() if 0 <= t.get_position()[0] <= 150_000]
     assert labels[0] == "0" and "50k" in labels and "150k" in labels and len(labels) <= 7
     assert all(len(t) <= 5 for t in labels)  # not "100000120000140000" run together
+
+
+def test_the_thesis_final_numbers_stand_at_the_end_of_curves_trained_for_its_budget(tmp_path: Path) -> None:
+    """At the thesis' own budget (FetchPush: 150,000 steps) each row of its table is a star at that budget on the
+    success and return curves, in the colour of the configuration held against it, and an arm of another intrinsic
+    reward at 0.2 gets none (it is not the thesis' SAC-MC); at any other budget there are no stars. The critics'
+    mean Q and entropy coefficient are drawn beside the bound's table wherever metrics.csv logs them."""
+    from matplotlib.figure import Figure as MplFigure
+
+    from mcrl.analysis.comparison import thesis_at_budget
+    from mcrl.analysis.plots import arm_colors
+    from mcrl.analysis.sections import _thesis_stars
+
+    full = {"total_steps": THESIS_RESULTS["FetchPush"]["total_steps"]}
+    exp = load_experiment(_sweep(tmp_path / "full", {"a0": (0.0, full, [0.2, 0.4, 0.6]),
+                                                     "rnd": (0.2, {**full, "intrinsic": "rnd"}, [0.3, 0.5, 0.7])}))
+    short = load_experiment(_sweep(tmp_path / "short", {"a0": (0.0, {}, [0.2, 0.4, 0.6])}))
+    assert thesis_at_budget(short) is None
+    name, t = thesis_at_budget(exp)
+    assert name == "FetchPush"
+    colors = arm_colors([g.key for g in exp.configs])
+    for col, thesis in (("success_rate", 0.52), ("mean_return", -31.3)):
+        ax = MplFigure().add_subplot()
+        _thesis_stars(ax, exp, t, col, colors)
+        assert [(tuple(ln.get_xydata()[0]), ln.get_color(), ln.get_label()) for ln in ax.lines] == [
+            ((150_000.0, thesis), colors[exp.configs[0].key], "thesis: SAC")]  # SAC-MC's row: no arm of MC
+
+    md = write_report(exp.dir, tmp_path / "rep").read_text()
+    assert "Stars at 150,000 env steps: the thesis' final success rate" in _section(md, "Learning curves")
+    assert "Stars at" not in write_report(short.dir, tmp_path / "rep-short").read_text()
+    assert "](critics_entropy.png)" in _section(md, "Critics against the soft-Q bound")
+    assert (tmp_path / "rep" / "critics_entropy.png").stat().st_size > 0

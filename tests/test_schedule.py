@@ -2,10 +2,8 @@
 one-line errors, the weight as an input of the one compiled step (`constant` is today's step bit for bit; a new
 weight compiles nothing), a vmapped group of runs on different schedules, kill -9 and resume, and `success` learning
 FetchReach."""
-import signal
 import subprocess
 import sys
-import time
 
 import jax
 import numpy as np
@@ -20,6 +18,7 @@ from mcrl.run import rundir
 from mcrl.run.learner import Learner, train_step
 from mcrl.run.policy import load_policy
 from mcrl.run.trainer import train, train_runs
+from tests.test_resume import kill_past_first_checkpoint
 
 TINY = {"hidden_sizes": [64, 64], "intrinsic_hidden_sizes": [64, 64], "batch_size": 64, "buffer_size": 5000,
         "intrinsic_history": 2000, "learning_starts": 100, "eval_episodes": 2, "checkpoint_every": 100_000}
@@ -231,13 +230,7 @@ def test_kill9_and_resume_follow_the_same_weights(tmp_path):
     full, killed = tmp_path / "full", tmp_path / "killed"
     subprocess.run([*cmd, "--run-dir", str(full)], check=True, capture_output=True)
     proc = subprocess.Popen([*cmd, "--run-dir", str(killed)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while not (killed / "checkpoints" / "latest").exists():
-        assert proc.poll() is None and time.time() < deadline
-        time.sleep(0.05)
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    kill_past_first_checkpoint(proc, killed, sets["checkpoint_every"])
     assert not (killed / rundir.DONE).exists()
     res = subprocess.run([sys.executable, "-c", _FAKE_SUCCESS, "train", "--resume", str(killed), "--no-progress"],
                          capture_output=True, text=True)

@@ -24,7 +24,8 @@ case "${1:-status}" in
   status)
     arm_status antmaze "$WORK" "$HERE" ;;
   report)
-    "$REPO/.venv/bin/mcrl" report "$HERE" --out "$HERE/report" ;;
+    # paths relative to the repository, so that the committed report names no machine's directories
+    cd "$REPO" && .venv/bin/mcrl report docs/antmaze/wiring --out docs/antmaze/wiring/report ;;
   render)
     # the environment's default camera stays put while the ant walks out of view: render a copy of the run whose
     # config asks AntMaze (through env_kwargs, to gymnasium's AntEnv) for a top-down camera over the whole maze

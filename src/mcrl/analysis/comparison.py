@@ -15,7 +15,7 @@ from mcrl.analysis.alpha_curve import alpha_curve_blocks
 from mcrl.analysis.cells import (interval, is_code_variant, mcrl_groups, mean_cell, mean_ci, num, reference_sac,
                                  sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.claims import LEVEL, NOT_DECIDABLE
-from mcrl.analysis.experiment import Experiment
+from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.families import CODE_VARIANT, ClaimResult, ReportClaims
 from mcrl.analysis.markdown import Block, Bullets, Heading, Paragraph, Table
 from mcrl.analysis.stats import MIN_SEEDS_FOR_VERDICT
@@ -36,13 +36,30 @@ def _thesis_verdict(what: str, thesis: float, ours: float, ci: tuple[float, floa
                    else ": our runs do better than the thesis reports.")
 
 
+def thesis_arms(exp: Experiment, t: dict[str, Any]) -> list[tuple[str, dict[str, Any], list[ConfigGroup]]]:
+    """Each row of the thesis' table (its label, its numbers) with the configurations of ``exp`` it is held against:
+    mcrl's and the reference arms at its alpha, SAC-MC's only with the thesis' reward (RND & co. at 0.2 are not the
+    thesis' SAC-MC)."""
+    ours_all = [*mcrl_groups(exp), *(g for g in exp.configs if g.peer)]
+    return [("SAC" if alpha == 0 else f"SAC-MC alpha={alpha:g}", th,
+             [g for g in ours_all if g.intrinsic_alpha is not None and math.isclose(g.intrinsic_alpha, alpha)
+              and (alpha == 0 or g.intrinsic == THESIS_REWARD)])
+            for alpha, th in t["by_alpha"].items()]
+
+
+def thesis_at_budget(exp: Experiment) -> tuple[str, dict[str, Any]] | None:
+    """The thesis' table (its name, its entry in THESIS_RESULTS) when every mcrl run of ``exp`` trains for the
+    thesis' own budget, so that its final numbers can stand at the end of our curves; else None."""
+    name = thesis_experiment(exp.preset, env_ids(exp.runs))
+    if name is None:
+        return None
+    budgets = {r.total_steps for g in mcrl_groups(exp) for r in g.runs if r.total_steps is not None}  # None: never started
+    return (name, THESIS_RESULTS[name]) if budgets == {THESIS_RESULTS[name]["total_steps"]} else None
+
+
 def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[str]]:
     rows, lines = [], []
-    ours_all = [*mcrl_groups(exp), *(g for g in exp.configs if g.peer)]
-    for alpha, th in t["by_alpha"].items():
-        label = "SAC" if alpha == 0 else f"SAC-MC alpha={alpha:g}"
-        ours = [g for g in ours_all if g.intrinsic_alpha is not None and math.isclose(g.intrinsic_alpha, alpha)
-                and (alpha == 0 or g.intrinsic == THESIS_REWARD)]  # RND & co. at 0.2 are not the thesis' SAC-MC
+    for label, th, ours in thesis_arms(exp, t):
         if not ours:
             rows.append([label, f"{th['success_mean']:.2f}", "not in this sweep", f"{th['success_var']:.2f}", "",
                          f"{th['mean_reward']:.1f}", "not in this sweep"])
@@ -50,7 +67,7 @@ def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[st
             s, m = g.finals()
             (ms, cs), (mm, cm) = mean_ci(s), mean_ci(m)
             row_label = f"{label}, reference" if g.peer else label
-            row_label += ", the thesis' code's variant" if alpha > 0 and is_code_variant(g) else ""
+            row_label += ", the thesis' code's variant" if label != "SAC" and is_code_variant(g) else ""
             rows.append([f"{row_label} (`{g.key}`)", f"{th['success_mean']:.2f}", mean_cell(ms, cs, s.size, 3),
                          f"{th['success_var']:.2f}", num(sample_var(s), 4), f"{th['mean_reward']:.1f}",
                          mean_cell(mm, cm, m.size, 2)])

@@ -21,6 +21,7 @@ from mcrl.analysis.cells import (CONF, SEED, mean_cell, mean_ci, name, num, othe
                                  sac_and_mc, sample_var, steps, too_few)
 from mcrl.analysis.divergence import CriticCheck, Rate, check_critics, lag_steps
 from mcrl.analysis.claims import LEVEL
+from mcrl.analysis.comparison import thesis_arms, thesis_at_budget
 from mcrl.analysis.experiment import ConfigGroup, Experiment
 from mcrl.analysis.families import ReportClaims
 from mcrl.analysis.hypothesis import fisher_exact, holm, rank_sum_test
@@ -90,14 +91,11 @@ def _learning_curves(exp: Experiment) -> list[Block]:
         panels.insert(1, ("intrinsic_alpha", "intrinsic weight alpha in force", "alpha"))
     fig, axes = panel_grid(len(panels), ncols=len(panels))
     colors = arm_colors([g.key for g in exp.configs])
+    thesis = thesis_at_budget(exp)
     for ax, (col, title, ylabel) in zip(axes, panels):
-        for peers, style in ((False, "-"), (True, "--")):  # reference arms dashed
-            series = [(g.key, _curve_source(r, col)) for g in exp.configs if bool(g.peer) == peers
-                      for r in g.runs if has_data(_curve_source(r, col), col)]
-            if series or not peers:
-                grid, by_cfg = curves_by_config(series, col)
-                plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED,
-                                      linestyle=style)
+        _plot_arms(ax, exp, col, lambda r, c=col: _curve_source(r, c), title, ylabel, colors)
+        if thesis is not None and col in _THESIS_FINAL:
+            _thesis_stars(ax, exp, thesis[1], col, colors)
     partial = sum(r.status == "partial" and r.has_eval for r in exp.runs)
     return [
         Heading(2, "Learning curves"),
@@ -106,7 +104,56 @@ def _learning_curves(exp: Experiment) -> list[Block]:
          f"where at least {MIN_SEEDS_FOR_VERDICT} seeds have the point; where fewer do, thin lines are the seeds' own curves."
          + (" Dashed: reference arms (not trained by mcrl)." if any(g.peer for g in exp.configs) else "")
          + (" Middle: the intrinsic weight in force at each log row, as each run's schedule set it." if moving else "")
+         + (f" Stars at {steps(thesis[1]['total_steps'])} env steps: the thesis' final success rate and mean "
+            f"reward ({thesis[1]['tables']}), in the colour of the configuration held against them."
+            if thesis is not None else "")
          + (f" {partial} unfinished run(s) are included up to their last evaluation." if partial else "")),
+    ]
+
+
+_THESIS_FINAL = {"success_rate": "success_mean", "mean_return": "mean_reward"}  # our curve: the thesis' number
+
+
+def _plot_arms(ax, exp: Experiment, col: str, source, title: str, ylabel: str, colors: dict[str, str],
+               logy: bool = False) -> None:
+    """Each configuration's curve of ``col`` (from ``source(run)``), mcrl's arms solid, reference arms dashed."""
+    for peers, style in ((False, "-"), (True, "--")):
+        series = [(g.key, source(r)) for g in exp.configs if bool(g.peer) == peers
+                  for r in g.runs if has_data(source(r), col)]
+        if series or not peers:
+            grid, by_cfg = curves_by_config(series, col)
+            plot_curves_with_band(ax, grid, by_cfg, title=title, ylabel=ylabel, colors=colors, seed=SEED,
+                                  linestyle=style, logy=logy)
+
+
+def _thesis_stars(ax, exp: Experiment, t: dict, col: str, colors: dict[str, str]) -> None:
+    """The thesis' final number of ``col`` for each row of its table, a star at its budget in the colour of the
+    first configuration held against that row (none where no configuration is)."""
+    for label, th, ours in thesis_arms(exp, t):
+        if ours:
+            ax.plot([t["total_steps"]], [th[_THESIS_FINAL[col]]], linestyle="none", marker="*", markersize=12,
+                    color=colors[ours[0].key], markeredgecolor="black", markeredgewidth=0.5, label=f"thesis: {label}")
+    ax.legend(fontsize=7, loc="best")
+
+
+def _critic_curves(exp: Experiment) -> list[Block]:
+    """The critics' mean Q and the entropy coefficient over training, per configuration: what the bound's table
+    summarises, and the two quantities a reader checks first when a SAC run stalls or diverges."""
+    panels = [("q_mean", "mean Q (replay batches)", "Q", False),
+              ("ent_coef", "entropy coefficient", "alpha (entropy)", True)]
+    if not any(has_data(r.metrics, col) for r in exp.runs for col, *_ in panels):
+        return []
+    fig, axes = panel_grid(len(panels), ncols=len(panels))
+    colors = arm_colors([g.key for g in exp.configs])
+    for ax, (col, title, ylabel, logy) in zip(axes, panels):
+        _plot_arms(ax, exp, col, lambda r: r.metrics, title, ylabel, colors, logy=logy)
+    axes[0].set_yscale("symlog", linthresh=1.0)  # a diverging arm's Q (1e4 and up) would flatten the others' to 0
+    return [
+        Paragraph("The critics' mean Q over the replay batches (symmetric log scale: linear within +-1) and SAC's "
+                  "entropy coefficient (log scale) during "
+                  f"training, from metrics.csv: mean over seeds, 95% bootstrap band where >= {MIN_SEEDS_FOR_VERDICT} "
+                  "seeds have the point, unfinished runs up to their last log row."),
+        Figure("critics_entropy.png", figure_to_png(fig), "Mean Q and entropy coefficient from metrics.csv."),
     ]
 
 
@@ -302,7 +349,7 @@ def _critic_section(exp: Experiment) -> list[Block]:
                 checks.setdefault(g.key, []).append((r, c))
     if not checks:
         return out + [Paragraph("Not computed: no finished run logs `q_mean` and `ent_coef` on an environment whose "
-                                "reward bound is known (mcrl.envs.FAMILIES).")]
+                                "reward bound is known (mcrl.envs.FAMILIES).")] + _critic_curves(exp)
     cfg = next(r.config for runs in checks.values() for r, _ in runs)
     lag = lag_steps(float(cfg.get("gamma", 0.99)), float(cfg.get("tau", 0.005)))
     rows = [[f"`{key}`", f"`{r.name}`", "yes" if c.left else "no", steps(c.first_outside) if c.left else "-",
@@ -328,6 +375,7 @@ def _critic_section(exp: Experiment) -> list[Block]:
         Paragraph("Rate of runs whose critics left the bound, with an exact (Clopper-Pearson) 95% interval, and "
                   "Fisher's exact test (two-sided) against mcrl's SAC arm."),
         Table(["configuration", "left the bound", "vs SAC"], rate_rows),
+        *_critic_curves(exp),
     ]
 
 
