@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 68: antmaze-sac and antmaze-sacmc seed 0 to 400,000 steps (sweep.yaml) from a clone of COMMIT, in
-# the background (WORKERS=2 runs both at once, one core each; default one at a time); then the report (MC reward and KL curves) and one rendered episode of the
-# SAC-MC run with its MC timeline.
+# the background (WORKERS=2 runs both at once, one core each; default one at a time); then the report (MC
+# reward and KL curves) and one rendered episode of each final policy with its timeline.
 #
 #   bash docs/antmaze/full/run.sh start    # clone + install (once), then start or resume the sweep
 #   bash docs/antmaze/full/run.sh sync     # finished runs' small files into runs/ here

@@ -47,14 +47,18 @@ def thesis_arms(exp: Experiment, t: dict[str, Any]) -> list[tuple[str, dict[str,
             for alpha, th in t["by_alpha"].items()]
 
 
+def _budgets(exp: Experiment) -> list[int]:
+    """The training budgets (total_steps) of mcrl's runs in ``exp``, ascending; a run never started has none."""
+    return sorted({r.total_steps for g in mcrl_groups(exp) for r in g.runs if r.total_steps is not None})
+
+
 def thesis_at_budget(exp: Experiment) -> tuple[str, dict[str, Any]] | None:
     """The thesis' table (its name, its entry in THESIS_RESULTS) when every mcrl run of ``exp`` trains for the
     thesis' own budget, so that its final numbers can stand at the end of our curves; else None."""
     name = thesis_experiment(exp.preset, env_ids(exp.runs))
     if name is None:
         return None
-    budgets = {r.total_steps for g in mcrl_groups(exp) for r in g.runs if r.total_steps is not None}  # None: never started
-    return (name, THESIS_RESULTS[name]) if budgets == {THESIS_RESULTS[name]["total_steps"]} else None
+    return (name, THESIS_RESULTS[name]) if _budgets(exp) == [THESIS_RESULTS[name]["total_steps"]] else None
 
 
 def _table(exp: Experiment, t: dict[str, Any]) -> tuple[list[list[str]], list[str]]:
@@ -138,7 +142,7 @@ def thesis_section(exp: Experiment, claims: ReportClaims) -> list[Block]:
         return []
     t = THESIS_RESULTS[name]
     ours_all = mcrl_groups(exp)
-    budgets = sorted({r.total_steps for g in ours_all for r in g.runs if r.total_steps is not None})
+    budgets = _budgets(exp)
     notes = []
     if budgets != [t["total_steps"]]:
         notes.append(f"**Not like-for-like:** our runs trained for {', '.join(map(steps, budgets)) or 'an unknown number of'} "
