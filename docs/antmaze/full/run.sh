@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 68: antmaze-sac and antmaze-sacmc seed 0 to 400,000 steps (sweep.yaml) from a clone of COMMIT, in
-# the background (WORKERS=2 runs both at once, one core each; default one at a time); then the report (MC
-# reward and KL curves) and one rendered episode of each final policy with its timeline.
+# the background (WORKERS=2 runs both at once, one core each; default one at a time; THREADS=2 gives a run two
+# cores, for the one left once the other has finished); then the report (MC reward and KL curves) and one
+# rendered episode of each final policy with its timeline.
 #
 #   bash docs/antmaze/full/run.sh start    # clone + install (once), then start or resume the sweep
 #   bash docs/antmaze/full/run.sh sync     # finished runs' small files into runs/ here
@@ -18,6 +19,7 @@ CODE="/work/repro/mcrl-$COMMIT"
 . "$REPO/docs/background-runs.sh"
 SWEEP="sweep .*--exp $WORK( |\$)"
 WORKERS="${WORKERS:-1}"
+THREADS="${THREADS:-1}"
 
 case "${1:-status}" in
   sync)
@@ -51,12 +53,12 @@ PY
     install_code "$REPO" "$CODE" "$COMMIT"
     restore_runs "$HERE" "$WORK"
     if pgrep -f "$SWEEP" > /dev/null; then echo "sweep already running (log $WORK.log)"; exit 0; fi
-    (trap '' HUP; exec $(on_free_cores "$WORKERS") nice -n 10 "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" \
-       --workers "$WORKERS" --threads-per-run 1 --exp "$WORK" \
+    (trap '' HUP; exec $(on_free_cores $((WORKERS * THREADS))) nice -n 10 "$CODE/.venv/bin/mcrl" sweep --file "$HERE/sweep.yaml" \
+       --workers "$WORKERS" --threads-per-run "$THREADS" --exp "$WORK" \
        --no-progress) >> "$WORK.log" 2>&1 &
     echo "started the sweep (log $WORK.log)"
     [ -f "$WORK/provenance.json" ] || write_provenance "$WORK" "$COMMIT" \
-      "mcrl sweep --file docs/antmaze/full/sweep.yaml --workers $WORKERS --threads-per-run 1 --exp EXP" \
+      "mcrl sweep --file docs/antmaze/full/sweep.yaml --workers $WORKERS --threads-per-run $THREADS --exp EXP" \
       "git checkout $COMMIT && mcrl train --preset antmaze-sac --seed 0  (or --preset antmaze-sacmc)" ;;
   *) echo "usage: $0 start|sync|status|stop|report|render" >&2; exit 2 ;;
 esac
