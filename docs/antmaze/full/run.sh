@@ -34,8 +34,9 @@ case "${1:-status}" in
     while pgrep -f "$SWEEP" > /dev/null; do sleep 2; done; echo "stopped" ;;
   render)
     # the environment's default camera stays put while the ant walks out of view: render a copy of the run whose
-    # config asks AntMaze (through env_kwargs, to gymnasium's AntEnv) for a top-down camera over the whole maze
-    for arm in sac:a0-s0 sacmc:a0.2-s0; do
+    # config asks AntMaze (through env_kwargs, to gymnasium's AntEnv) for a top-down camera over the whole maze;
+    # ARMS="sac:a0-s0" renders a finished arm while the other still runs
+    for arm in ${ARMS:-sac:a0-s0 sacmc:a0.2-s0}; do
     TMP=$(mktemp -d)
     cp -r "$WORK/runs/${arm#*:}/config.json" "$WORK/runs/${arm#*:}/checkpoints" "$TMP/"
     "$CODE/.venv/bin/python" - "$TMP/config.json" <<'PY'
